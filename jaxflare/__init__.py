@@ -1,0 +1,49 @@
+"""jaxflare: differentiable, physically based lens-flare simulation in JAX.
+
+Public API: :func:`load_lens`, :class:`Lens`, :func:`trace`, :func:`ghost_paths`, the glass
+catalog (:func:`find_glass`, :func:`model_glass`) and the lens file readers and writers.
+"""
+
+from ._glass import Glass, UnknownGlassError, find_glass, model_glass, nearest_glass
+from ._lens import Lens, LensWarning, build_lens
+from ._lens_format import lens_toml_text, parse_lens_toml, read_lens_toml
+from ._load import bundled_lens_names, load_lens, read_prescription
+from ._prescription import (
+    CoatingLayerSpec,
+    CoatingSpec,
+    LensFormatError,
+    LensPrescription,
+    MediumSpec,
+    SurfaceSpec,
+)
+from ._trace import TraceResult, ghost_paths, path_events, path_fresnel_factor, trace
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "CoatingLayerSpec",
+    "CoatingSpec",
+    "Glass",
+    "Lens",
+    "LensFormatError",
+    "LensPrescription",
+    "LensWarning",
+    "MediumSpec",
+    "SurfaceSpec",
+    "TraceResult",
+    "UnknownGlassError",
+    "build_lens",
+    "bundled_lens_names",
+    "find_glass",
+    "ghost_paths",
+    "lens_toml_text",
+    "load_lens",
+    "model_glass",
+    "nearest_glass",
+    "parse_lens_toml",
+    "path_events",
+    "path_fresnel_factor",
+    "read_lens_toml",
+    "read_prescription",
+    "trace",
+]

@@ -1,0 +1,409 @@
+"""The array-valued lens (an ``equinox.Module`` pytree) and its construction from a prescription."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+from typing import Literal
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+from . import _paraxial
+from ._glass import Glass, UnknownGlassError, find_glass, model_glass
+from ._prescription import (
+    DEFAULT_COATING,
+    UNCOATED,
+    CoatingSpec,
+    LensFormatError,
+    LensPrescription,
+    MediumSpec,
+    SurfaceSpec,
+)
+
+SURFACE_KIND_CODES = {"spherical": 0, "cylindrical_x": 1, "cylindrical_y": 2}
+D_LINE_NM = 587.56
+STATED_INDEX_TOLERANCE = 0.002
+"""Largest |n_d(catalog) - n_d(stated)| accepted silently for a named glass."""
+
+
+class LensWarning(UserWarning):
+    """Something about a lens was substituted or derived; the message says what."""
+
+
+class Lens(eqx.Module):
+    """A sequential lens as arrays, ready for jit-compiled tracing.
+
+    Surfaces are indexed ``s = 0 .. num_surfaces - 1`` front to back; media ``m = 0 .. num_surfaces``
+    where medium ``s`` lies in front of surface ``s`` (medium 0 is object-space air, the last one
+    image-space air). Lengths in mm, wavelengths in nm. Build one with :func:`jaxflare.load_lens` or
+    :func:`build_lens`; derive variants with :meth:`with_f_number`, :meth:`focused_at`,
+    :meth:`with_aperture` and :meth:`at_zoom`.
+
+    The paraxial methods (``focal_length`` and friends) evaluate in NumPy float64 and are meant
+    for set-up and analysis, outside ``jit``.
+    """
+
+    curvature_per_mm: Float[Array, " S"]
+    conic: Float[Array, " S"]
+    aspheric_coefficients: Float[Array, "S K"]
+    """Even-asphere coefficients A4, A6, ... per surface (zero-padded)."""
+    surface_kind: Int[Array, " S"]
+    """0 rotationally symmetric, 1 cylindrical with power in x, 2 cylindrical with power in y."""
+    thickness_mm: Float[Array, " S"]
+    """Axial gap after each surface (the last one reaches the prescription's sensor plane)."""
+    semi_aperture_mm: Float[Array, " S"]
+    sellmeier_b: Float[Array, "M 3"]
+    sellmeier_c_um2: Float[Array, "M 3"]
+    medium_is_air: Bool[Array, " M"]
+    coating_indices: Float[Array, "S L"]
+    coating_thicknesses_nm: Float[Array, "S L"]
+    """Thin-film layers per surface in the order a forward ray meets them; zero thickness = none."""
+    stop_radius_mm: Float[Array, ""]
+    """Working radius of the aperture stop (circumradius of the iris polygon)."""
+    aperture_rotation_rad: Float[Array, ""]
+    sensor_z_mm: Float[Array, ""]
+    """z of the sensor plane (z = 0 at the vertex of surface 0)."""
+
+    stop_index: int = eqx.field(static=True)
+    aperture_blades: int = eqx.field(static=True)
+    interface_surfaces: tuple[int, ...] = eqx.field(static=True)
+    has_aspheres: bool = eqx.field(static=True)
+    zoom_position: int = eqx.field(static=True)
+    prescription: LensPrescription = eqx.field(static=True)
+    media: tuple[Glass | None, ...] = eqx.field(static=True)
+    """Resolved medium behind each surface (None = air), for reports."""
+    notes: tuple[str, ...] = eqx.field(static=True)
+    """Substitutions and derivations made while building (also emitted as warnings)."""
+
+    # ----------------------------------------------------------------- structure
+    @property
+    def name(self) -> str:
+        return self.prescription.name
+
+    @property
+    def num_surfaces(self) -> int:
+        return len(self.prescription.surfaces)
+
+    @property
+    def num_interfaces(self) -> int:
+        """Surfaces where the refractive index changes (stop in air and dummies excluded)."""
+        return len(self.interface_surfaces)
+
+    @property
+    def num_zoom_positions(self) -> int:
+        return self.prescription.num_zoom_positions
+
+    @property
+    def vertex_z_mm(self) -> np.ndarray:
+        thickness = np.asarray(self.thickness_mm, dtype=np.float64)
+        return np.concatenate([[0.0], np.cumsum(thickness[:-1])])
+
+    @property
+    def max_stop_radius_mm(self) -> float:
+        return float(self.semi_aperture_mm[self.stop_index])
+
+    # ----------------------------------------------------------------- paraxial
+    def refractive_indices(self, wavelength_nm: float = D_LINE_NM) -> np.ndarray:
+        """Index of every medium (length num_surfaces + 1) at one wavelength, float64."""
+        lam2 = (wavelength_nm * 1e-3) ** 2
+        b = np.asarray(self.sellmeier_b, np.float64)
+        c = np.asarray(self.sellmeier_c_um2, np.float64)
+        n = np.sqrt(1.0 + np.sum(b * lam2 / (lam2 - c), axis=-1))
+        return np.where(np.asarray(self.medium_is_air), 1.0, n)
+
+    def _powers(self, wavelength_nm: float, plane: _paraxial.Plane) -> tuple[np.ndarray, np.ndarray]:
+        if plane not in ("x", "y"):
+            raise ValueError(f"plane must be 'x' or 'y', got {plane!r}")
+        n = self.refractive_indices(wavelength_nm)
+        kinds = np.asarray(self.surface_kind)
+        curvature = np.asarray(self.curvature_per_mm, np.float64)
+        no_power = kinds == (SURFACE_KIND_CODES["cylindrical_y"] if plane == "x" else SURFACE_KIND_CODES["cylindrical_x"])
+        curvature = np.where(no_power, 0.0, curvature)
+        return _paraxial.surface_powers(curvature, n[:-1], n[1:]), n
+
+    def paraxial_system(self, wavelength_nm: float = D_LINE_NM, plane: _paraxial.Plane = "y") -> np.ndarray:
+        """2x2 y-nu matrix from the first to the last vertex."""
+        powers, n = self._powers(wavelength_nm, plane)
+        return _paraxial.system_matrix(powers, np.asarray(self.thickness_mm, np.float64), n, 0, self.num_surfaces - 1)
+
+    def focal_length(self, wavelength_nm: float = D_LINE_NM, plane: _paraxial.Plane = "y") -> float:
+        """Effective focal length in mm (paraxial) at ``wavelength_nm`` in the ``plane`` meridian.
+
+        The two planes differ only for anamorphic lenses with cylindrical surfaces.
+        """
+        return _paraxial.effective_focal_length(self.paraxial_system(wavelength_nm, plane))
+
+    def back_focal_length(self, wavelength_nm: float = D_LINE_NM, plane: _paraxial.Plane = "y") -> float:
+        """Distance in mm from the last vertex to the rear focal point."""
+        return _paraxial.back_focal_distance(self.paraxial_system(wavelength_nm, plane))
+
+    def entrance_pupil(self, wavelength_nm: float = D_LINE_NM, plane: _paraxial.Plane = "y") -> tuple[float, float]:
+        """``(z_mm, radius_mm)`` of the entrance pupil at the current stop radius (z from vertex 0)."""
+        powers, n = self._powers(wavelength_nm, plane)
+        thickness = np.asarray(self.thickness_mm, np.float64)
+        if self.stop_index == 0:
+            return 0.0, float(self.stop_radius_mm)
+        front = _paraxial.system_matrix(powers, thickness, n, 0, self.stop_index - 1)
+        front = _paraxial.transfer_matrix(thickness[self.stop_index - 1], n[self.stop_index]) @ front
+        z, magnification = _paraxial.entrance_pupil(front)
+        return z, abs(magnification) * float(self.stop_radius_mm)
+
+    def exit_pupil(self, wavelength_nm: float = D_LINE_NM, plane: _paraxial.Plane = "y") -> tuple[float, float]:
+        """``(z_mm, radius_mm)`` of the exit pupil at the current stop radius (z from vertex 0)."""
+        powers, n = self._powers(wavelength_nm, plane)
+        thickness = np.asarray(self.thickness_mm, np.float64)
+        back = _paraxial.system_matrix(powers, thickness, n, self.stop_index, self.num_surfaces - 1)
+        z, magnification = _paraxial.stop_image(back)
+        return float(self.vertex_z_mm[-1]) + z, abs(magnification) * float(self.stop_radius_mm)
+
+    def f_number(self, wavelength_nm: float = D_LINE_NM, plane: _paraxial.Plane = "y") -> float:
+        """Paraxial f-number for an object at infinity at the current stop radius: EFL / EP diameter."""
+        _, radius = self.entrance_pupil(wavelength_nm, plane)
+        return abs(self.focal_length(wavelength_nm, plane)) / (2.0 * radius)
+
+    @property
+    def widest_f_number(self) -> float:
+        """f-number with the stop fully open (at its semi-aperture)."""
+        return self.with_stop_radius(self.max_stop_radius_mm).f_number()
+
+    def sensor_z_for_focus(self, focus_distance_mm: float = math.inf, wavelength_nm: float = D_LINE_NM) -> float:
+        """z of the paraxial image plane for an axial object ``focus_distance_mm`` in front of vertex 0."""
+        if not focus_distance_mm > 0:
+            raise ValueError(f"focus_distance_mm must be > 0 (or inf), got {focus_distance_mm}")
+        distance = _paraxial.image_distance(self.paraxial_system(wavelength_nm), focus_distance_mm)
+        return float(self.vertex_z_mm[-1]) + distance
+
+    # ----------------------------------------------------------------- variants
+    def with_stop_radius(self, stop_radius_mm: float) -> "Lens":
+        if not 0 < stop_radius_mm <= self.max_stop_radius_mm * (1 + 1e-9):
+            raise ValueError(
+                f"stop radius {stop_radius_mm:.4g} mm is outside (0, {self.max_stop_radius_mm:.4g}] mm, "
+                f"the largest the stop of '{self.name}' allows"
+            )
+        return eqx.tree_at(lambda lens: lens.stop_radius_mm, self, jnp.asarray(stop_radius_mm, self.stop_radius_mm.dtype))
+
+    def with_f_number(self, f_number: float) -> "Lens":
+        """The same lens stopped to ``f_number`` (object at infinity); an error if faster than wide open."""
+        if not f_number > 0:
+            raise ValueError(f"f_number must be > 0, got {f_number}")
+        wide_open = self.widest_f_number
+        if f_number < wide_open * (1 - 1e-6):
+            raise ValueError(f"f/{f_number:g} is faster than '{self.name}' allows: its widest aperture is f/{wide_open:.3g}")
+        radius = self.max_stop_radius_mm * wide_open / f_number
+        return self.with_stop_radius(min(radius, self.max_stop_radius_mm))
+
+    def with_aperture(self, blades: int | None = None, rotation_deg: float | None = None) -> "Lens":
+        """Change the iris: ``blades`` >= 3 for a polygon, 0 for a circle; rotation in degrees."""
+        lens = self
+        if blades is not None:
+            if not isinstance(blades, int) or blades < 0 or blades in (1, 2):
+                raise ValueError(f"blades must be 0 (circular) or an integer >= 3, got {blades!r}")
+            lens = dataclasses.replace(lens, aperture_blades=blades)
+        if rotation_deg is not None:
+            lens = eqx.tree_at(lambda l: l.aperture_rotation_rad, lens, jnp.asarray(math.radians(rotation_deg), lens.aperture_rotation_rad.dtype))
+        return lens
+
+    def focused_at(self, focus_distance_mm: float, wavelength_nm: float = D_LINE_NM) -> "Lens":
+        """Move the sensor to the paraxial image of an axial point ``focus_distance_mm`` in front of vertex 0."""
+        z = self.sensor_z_for_focus(focus_distance_mm, wavelength_nm)
+        return eqx.tree_at(lambda lens: lens.sensor_z_mm, self, jnp.asarray(z, self.sensor_z_mm.dtype))
+
+    def at_zoom(self, zoom_position: int) -> "Lens":
+        """The same lens at another zoom position (thicknesses from the prescription)."""
+        lens = build_lens(self.prescription, zoom_position)
+        return dataclasses.replace(
+            lens,
+            aperture_blades=self.aperture_blades,
+            aperture_rotation_rad=self.aperture_rotation_rad,
+        )
+
+    def describe(self) -> str:
+        """A short multi-line summary (name, source, EFL, f-number, interfaces, ghost paths)."""
+        efl_y = self.focal_length()
+        lines = [f"{self.name}", f"  source: {self.prescription.source or 'n/a'}"]
+        efl = f"{efl_y:.2f} mm"
+        efl_x = self.focal_length(plane="x")
+        if abs(efl_x - efl_y) > 1e-6 * abs(efl_y):
+            efl = f"{efl_y:.2f} mm (y), {efl_x:.2f} mm (x)"
+        stated = self.prescription.stated_focal_length_mm
+        lines.append(f"  EFL: {efl}" + (f"  (stated {stated:g} mm)" if stated else ""))
+        lines.append(f"  f-number: f/{self.widest_f_number:.2f} wide open" + (f"  (stated f/{self.prescription.stated_f_number:g})" if self.prescription.stated_f_number else ""))
+        n = self.num_interfaces
+        lines.append(f"  surfaces: {self.num_surfaces}, interfaces: {n}, ghost paths: {n * (n - 1) // 2}")
+        if self.num_zoom_positions > 1:
+            lines.append(f"  zoom positions: {self.num_zoom_positions} (this is {self.zoom_position})")
+        return "\n".join(lines)
+
+
+# --------------------------------------------------------------------- building
+
+
+def _resolve_medium(medium: MediumSpec, surface: SurfaceSpec, prescription: LensPrescription, notes: list[str]) -> Glass | None:
+    if medium.is_air:
+        return None
+    if medium.glass is None:
+        try:
+            return model_glass(medium.n_d, medium.v_d)
+        except ValueError as error:
+            raise LensFormatError(f"{surface.label}: {error}") from None
+    catalogs = ((medium.catalog,) if medium.catalog else ()) + tuple(prescription.glass_catalogs)
+    try:
+        glass = find_glass(medium.glass, catalogs)
+    except UnknownGlassError as error:
+        if medium.n_d is not None and medium.v_d is not None:
+            note = (
+                f"{surface.label}: glass {medium.glass!r} is not in the catalogs; substituted a model glass "
+                f"with the stated n_d={medium.n_d}, V_d={medium.v_d}"
+            )
+            notes.append(note)
+            warnings.warn(note, LensWarning, stacklevel=4)
+            return model_glass(medium.n_d, medium.v_d)
+        raise LensFormatError(f"{surface.label}: {error}") from None
+    if medium.n_d is not None and abs(glass.n_d - medium.n_d) > STATED_INDEX_TOLERANCE:
+        note = (
+            f"{surface.label}: catalog glass {glass.catalog}:{glass.name} has n_d={glass.n_d:.5f}, "
+            f"but the source states {medium.n_d}; using the catalog glass"
+        )
+        notes.append(note)
+        warnings.warn(note, LensWarning, stacklevel=4)
+    return glass
+
+
+def _same_medium(a: Glass | None, b: Glass | None) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return (a.sellmeier_b, a.sellmeier_c_um2) == (b.sellmeier_b, b.sellmeier_c_um2)
+
+
+def _default_coating(before: Glass | None, after: Glass | None, spec: CoatingSpec | None) -> CoatingSpec:
+    if _same_medium(before, after):
+        return UNCOATED  # a stop or dummy surface in one medium cannot reflect
+    if spec is not None:
+        return spec
+    if before is None or after is None:
+        return DEFAULT_COATING
+    return UNCOATED  # cemented glass-glass interface
+
+
+def build_lens(prescription: LensPrescription, zoom_position: int = 0) -> Lens:
+    """Resolve glasses and coatings, derive missing apertures, and build the array-valued lens."""
+    surfaces = prescription.surfaces
+    num = len(surfaces)
+    if num == 0:
+        raise LensFormatError(f"{prescription.path or prescription.name}: the lens has no surfaces")
+    if not 0 <= zoom_position < prescription.num_zoom_positions:
+        raise ValueError(f"zoom_position must be in [0, {prescription.num_zoom_positions - 1}] for '{prescription.name}', got {zoom_position}")
+    stop_index = prescription.stop_surface_index
+    notes: list[str] = []
+    media: list[Glass | None] = [None]
+    for surface in surfaces:
+        media.append(_resolve_medium(surface.medium, surface, prescription, notes))
+    if media[-1] is not None:
+        raise LensFormatError(f"{surfaces[-1].label}: the medium after the last surface (image space) must be air")
+    coatings = [_default_coating(media[s], media[s + 1], surfaces[s].coating) for s in range(num)]
+    interface_surfaces = tuple(s for s in range(num) if not _same_medium(media[s], media[s + 1]))
+
+    max_layers = max([1] + [len(c.layers) for c in coatings])
+    coating_indices = np.ones((num, max_layers))
+    coating_thicknesses = np.zeros((num, max_layers))
+    for s, coating in enumerate(coatings):
+        for k, layer in enumerate(coating.layers):
+            coating_indices[s, k] = layer.index
+            coating_thicknesses[s, k] = layer.thickness_nm
+
+    max_aspheric = max([1] + [len(s.aspheric_coefficients) for s in surfaces])
+    aspheric = np.zeros((num, max_aspheric))
+    for s, surface in enumerate(surfaces):
+        aspheric[s, : len(surface.aspheric_coefficients)] = surface.aspheric_coefficients
+
+    sellmeier_b = np.zeros((num + 1, 3))
+    sellmeier_c = np.zeros((num + 1, 3))
+    for m, glass in enumerate(media):
+        if glass is not None:
+            sellmeier_b[m] = glass.sellmeier_b
+            sellmeier_c[m] = glass.sellmeier_c_um2
+
+    thickness = np.array([s.thicknesses_mm[zoom_position] for s in surfaces], dtype=np.float64)
+    for s, t in enumerate(thickness):
+        if t < 0:
+            raise LensFormatError(f"{surfaces[s].label}: negative thickness {t} mm")
+    semi_aperture = np.array([s.semi_aperture_mm for s in surfaces], dtype=np.float64)
+
+    lens = Lens(
+        curvature_per_mm=jnp.asarray([s.curvature_per_mm for s in surfaces]),
+        conic=jnp.asarray([s.conic for s in surfaces]),
+        aspheric_coefficients=jnp.asarray(aspheric),
+        surface_kind=jnp.asarray([SURFACE_KIND_CODES[s.kind] for s in surfaces], dtype=jnp.int32),
+        thickness_mm=jnp.asarray(thickness),
+        semi_aperture_mm=jnp.asarray(semi_aperture),
+        sellmeier_b=jnp.asarray(sellmeier_b),
+        sellmeier_c_um2=jnp.asarray(sellmeier_c),
+        medium_is_air=jnp.asarray([g is None for g in media]),
+        coating_indices=jnp.asarray(coating_indices),
+        coating_thicknesses_nm=jnp.asarray(coating_thicknesses),
+        stop_radius_mm=jnp.asarray(semi_aperture[stop_index]),
+        aperture_rotation_rad=jnp.asarray(math.radians(prescription.aperture_rotation_deg)),
+        sensor_z_mm=jnp.asarray(float(np.sum(thickness))),
+        stop_index=stop_index,
+        aperture_blades=prescription.aperture_blades,
+        interface_surfaces=interface_surfaces,
+        has_aspheres=bool(np.any(aspheric != 0.0)),
+        zoom_position=zoom_position,
+        prescription=prescription,
+        media=tuple(media[1:]),
+        notes=(),
+    )
+    if np.any(np.isnan(semi_aperture)):
+        lens = _derive_semi_apertures(lens, notes)
+    return dataclasses.replace(lens, notes=tuple(notes))
+
+
+def _derive_semi_apertures(lens: Lens, notes: list[str]) -> Lens:
+    """Fill missing clear semi-apertures from a paraxial marginal ray (stated f-number) and a chief
+    ray at the corner of the sensor, with a 5 % margin, capped below |R|."""
+    prescription = lens.prescription
+    if prescription.stated_f_number is None:
+        raise LensFormatError(f"{prescription.path or prescription.name}: semi-apertures are missing and no f_number is stated to derive them from")
+    efl = lens.focal_length()
+    half_field = math.atan(0.5 * math.hypot(prescription.sensor_width_mm, prescription.sensor_height_mm) / abs(efl))
+    powers, n = lens._powers(D_LINE_NM, "y")
+    thickness = np.asarray(lens.thickness_mm, np.float64)
+    stop = lens.stop_index
+    if stop > 0:
+        front = _paraxial.system_matrix(powers, thickness, n, 0, stop - 1)
+        front = _paraxial.transfer_matrix(thickness[stop - 1], n[stop]) @ front
+    else:
+        front = np.eye(2)
+    entrance_radius = abs(efl) / (2.0 * prescription.stated_f_number)
+    (a, b), _ = front
+    marginal = np.array([entrance_radius, 0.0])
+    chief = np.array([-b / a * math.tan(half_field), math.tan(half_field)])
+    heights = np.zeros(lens.num_surfaces)
+    rays = np.stack([marginal, chief], axis=1)
+    for s in range(lens.num_surfaces):
+        if s > 0:
+            rays = _paraxial.transfer_matrix(thickness[s - 1], n[s]) @ rays
+        heights[s] = abs(rays[0, 0]) + (abs(rays[0, 1]) if s != stop else 0.0)
+        rays = _paraxial.refraction_matrix(powers[s]) @ rays
+    semi = np.asarray(lens.semi_aperture_mm, np.float64).copy()
+    derived = []
+    for s, surface in enumerate(prescription.surfaces):
+        if math.isnan(semi[s]):
+            value = heights[s] * (1.0 if s == stop else 1.05)
+            if math.isfinite(surface.radius_mm):
+                value = min(value, 0.98 * abs(surface.radius_mm))
+            semi[s] = value
+            derived.append(s)
+    note = (
+        f"{prescription.path or prescription.name}: semi-apertures of surfaces {derived} derived from paraxial marginal "
+        f"(f/{prescription.stated_f_number:g}) and chief rays ({math.degrees(half_field):.1f} deg half field); not in the source"
+    )
+    notes.append(note)
+    warnings.warn(note, LensWarning, stacklevel=3)
+    semi_jnp = jnp.asarray(semi)
+    lens = eqx.tree_at(lambda l: l.semi_aperture_mm, lens, semi_jnp)
+    return eqx.tree_at(lambda l: l.stop_radius_mm, lens, semi_jnp[stop])

@@ -1,0 +1,171 @@
+"""The ``jaxflare`` command line.
+
+    jaxflare lens list                      bundled lenses with EFL, f-number, interfaces, ghost paths
+    jaxflare lens info NAME [--zoom K]      one lens: data, surfaces, ghost paths ranked by strength
+    jaxflare lens plot NAME -o OUT.png      cross-section with primary rays and a ghost path
+    jaxflare lens convert IN OUT            between the jaxflare TOML format and Zemax .zmx
+    jaxflare demo [--out DIR]               the demo: lens table and a cross-section plot
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import warnings
+
+
+def _load(name: str, zoom: int = 0):
+    from ._load import load_lens
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        lens = load_lens(name, zoom)
+    for warning in caught:
+        print(f"note: {warning.message}", file=sys.stderr)
+    return lens
+
+
+def _lens_table(names: list[str]) -> str:
+    rows = [("lens", "EFL mm", "stated", "f/#", "interfaces", "ghost paths", "zoom pos.")]
+    for name in names:
+        lens = _load(name)
+        n = lens.num_interfaces
+        if lens.num_zoom_positions > 1:
+            efls = [lens.at_zoom(k).focal_length() for k in range(lens.num_zoom_positions)]
+            efl = "-".join(f"{f:.1f}" for f in (efls[0], efls[-1]))
+            stated = "-".join(f"{f:g}" for f in (lens.prescription.stated_focal_lengths_mm[0], lens.prescription.stated_focal_lengths_mm[-1])) if lens.prescription.stated_focal_lengths_mm else ""
+        else:
+            efl = f"{lens.focal_length():.2f}"
+            stated = f"{lens.prescription.stated_focal_length_mm:g}" if lens.prescription.stated_focal_length_mm else ""
+        efl_x = lens.focal_length(plane="x")
+        if abs(efl_x - lens.focal_length()) > 1e-6 * abs(efl_x):
+            efl += f" (x {efl_x:.1f})"
+        rows.append((name, efl, stated, f"{lens.widest_f_number:.2f}", str(n), str(n * (n - 1) // 2), str(lens.num_zoom_positions)))
+    widths = [max(len(row[k]) for row in rows) for k in range(len(rows[0]))]
+    return "\n".join("  ".join(cell.ljust(width) for cell, width in zip(row, widths)) for row in rows)
+
+
+def _lens_info(name: str, zoom: int, top: int) -> str:
+    from ._plot import rank_ghost_paths
+
+    lens = _load(name, zoom)
+    lines = [lens.describe()]
+    z_ep, r_ep = lens.entrance_pupil()
+    z_xp, r_xp = lens.exit_pupil()
+    lines.append(f"  back focal length: {lens.back_focal_length():.3f} mm; sensor at z = {float(lens.sensor_z_mm):.3f} mm")
+    lines.append(f"  entrance pupil: z = {z_ep:.2f} mm, radius {r_ep:.2f} mm; exit pupil: z = {z_xp:.2f} mm, radius {r_xp:.2f} mm")
+    lines.append(f"  aperture: {'circular' if lens.aperture_blades == 0 else f'{lens.aperture_blades} blades'}, stop surface {lens.stop_index}")
+    for note in lens.notes:
+        lines.append(f"  note: {note}")
+    lines.append("")
+    lines.append("  surf  radius mm    thick mm   semi-ap mm  medium after")
+    for s, surface in enumerate(lens.prescription.surfaces):
+        radius = "flat" if math.isinf(surface.radius_mm) else f"{surface.radius_mm:.4g}"
+        glass = lens.media[s]
+        medium = "air" if glass is None else f"{glass.catalog}:{glass.name} (n_d {glass.n_d:.4f})"
+        flags = (" STOP" if surface.is_stop else "") + (f" {surface.kind}" if surface.kind != "spherical" else "")
+        lines.append(f"  {s:>4}  {radius:>10}  {float(lens.thickness_mm[s]):>9.3f}  {float(lens.semi_aperture_mm[s]):>10.3f}  {medium}{flags}")
+    lines.append("")
+    ranked = rank_ghost_paths(lens)
+    lines.append(f"  ghost paths ranked by on-axis Fresnel factor at 550 nm (top {min(top, len(ranked))} of {len(ranked)}):")
+    for path, factor in ranked[:top]:
+        lines.append(f"    {str(path):>10}  {factor:.3e}")
+    return "\n".join(lines)
+
+
+def _demo(out_dir: str) -> int:
+    from ._load import bundled_lens_names
+    from ._plot import save_cross_section
+
+    names = bundled_lens_names()
+    print("Bundled lenses:")
+    print(_lens_table(names))
+    lens = _load("zeiss_biotar" if "zeiss_biotar" in names else names[0])
+    png = save_cross_section(lens, os.path.join(out_dir, "cross_section.png"))
+    print(f"\nwrote {os.path.abspath(png)}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="jaxflare", description="Physically based lens flares in JAX.")
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    lens = commands.add_parser("lens", help="inspect, plot and convert lenses").add_subparsers(dest="lens_command", required=True)
+    lens.add_parser("list", help="bundled lenses")
+    info = lens.add_parser("info", help="one lens in detail")
+    info.add_argument("name", help="bundled lens name, .toml or .zmx path")
+    info.add_argument("--zoom", type=int, default=0, help="zoom position (default 0)")
+    info.add_argument("--top", type=int, default=15, help="how many ghost paths to list")
+    plot = lens.add_parser("plot", help="cross-section PNG")
+    plot.add_argument("name")
+    plot.add_argument("-o", "--output", required=True, help="PNG path")
+    plot.add_argument("--zoom", type=int, default=0)
+    plot.add_argument("--ghost", default="strongest", help="ghost path as J,I, 'strongest' or 'none'")
+    convert = lens.add_parser("convert", help="convert between .toml and .zmx")
+    convert.add_argument("source")
+    convert.add_argument("target")
+
+    demo = commands.add_parser("demo", help="run the demo")
+    demo.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
+    return parser
+
+
+def _parse_ghost(text: str):
+    if text == "strongest":
+        return "strongest"
+    if text == "none":
+        return None
+    try:
+        j, i = (int(v) for v in text.split(","))
+    except ValueError:
+        raise SystemExit(f"jaxflare: --ghost must be J,I (e.g. 5,2), 'strongest' or 'none', got {text!r}") from None
+    return (j, i)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from ._prescription import LensFormatError
+
+    try:
+        if args.command == "demo":
+            return _demo(args.out)
+        if args.lens_command == "list":
+            from ._load import bundled_lens_names
+
+            print(_lens_table(bundled_lens_names()))
+        elif args.lens_command == "info":
+            print(_lens_info(args.name, args.zoom, args.top))
+        elif args.lens_command == "plot":
+            from ._plot import save_cross_section
+
+            print(save_cross_section(_load(args.name, args.zoom), args.output, ghost_path=_parse_ghost(args.ghost)))
+        elif args.lens_command == "convert":
+            _convert(args.source, args.target)
+        return 0
+    except (LensFormatError, FileNotFoundError, ValueError, KeyError) as error:
+        message = error.args[0] if isinstance(error, KeyError) and error.args else error
+        print(f"jaxflare: error: {message}", file=sys.stderr)
+        return 2
+
+
+def _convert(source: str, target: str) -> None:
+    from ._io import write_text_atomic
+    from ._lens_format import lens_toml_text
+    from ._load import read_prescription
+
+    prescription = read_prescription(source)
+    if target.lower().endswith(".zmx"):
+        from ._zemax import zmx_text
+
+        write_text_atomic(target, zmx_text(prescription))
+    elif target.lower().endswith(".toml"):
+        write_text_atomic(target, lens_toml_text(prescription))
+    else:
+        raise ValueError(f"target must end in .toml or .zmx, got {target!r}")
+    print(f"wrote {target}")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
