@@ -139,8 +139,17 @@ def _surface_sag_slope(rho2: Array, curvature: Array, conic: Array, aspheric: Ar
     return sag, slope
 
 
+_BEHIND_TOLERANCE_MM = 1e-4
+"""A root up to this far behind the ray origin still counts: the origin lies on the previous surface,
+which may touch this one (cemented rims), and float32 positions carry about 1e-5 mm of rounding."""
+
+
 def _intersect(origin, direction, vertex_z, curvature, conic, aspheric, kind, has_aspheres):
-    """Intersection with the surface nearest its vertex; returns (point, unit normal facing -z, hit)."""
+    """First intersection ahead of the ray with the vertex sheet of the surface.
+
+    Returns (point, unit normal facing -z, hit); ``hit`` is False for a miss, a surface behind the
+    ray (sequential order violated, as where two surfaces cross) or a hit only on the far sheet.
+    """
     wx = jnp.where(kind == 2, 0.0, 1.0)  # cylindrical_y has no x dependence
     wy = jnp.where(kind == 1, 0.0, 1.0)
     px, py, pz = origin[:, 0], origin[:, 1], origin[:, 2] - vertex_z
@@ -150,11 +159,20 @@ def _intersect(origin, direction, vertex_z, curvature, conic, aspheric, kind, ha
     b = c * (wx * px * dx + wy * py * dy) - dz + k1 * c * pz * dz
     g = c * (wx * px * px + wy * py * py) - 2.0 * pz + k1 * c * pz * pz
     disc = b * b - a * g
-    hit = disc >= 0
+    # Both roots of a t^2 + 2 b t + g = 0, computed without cancellation. Keep the first one ahead of
+    # the ray (t >= 0) that lies on the vertex sheet of the quadric (k1 c z <= 1: the sheet through
+    # the vertex, whose normal faces -z); a root behind the ray or on the far sheet is not a hit.
+    root = _safe_sqrt(disc)
     sign = jnp.where(b >= 0, 1.0, -1.0)
-    denominator = b + sign * _safe_sqrt(disc)
-    hit = hit & (denominator != 0)
-    t = _safe_divide(-g, denominator)
+    q = -(b + sign * root)
+    roots = jnp.stack([_safe_divide(g, q), _safe_divide(q, a)])
+    exists = jnp.stack([q != 0, a != 0]) & (disc >= 0)
+    z_roots = pz + roots * dz
+    usable = exists & (roots >= -_BEHIND_TOLERANCE_MM) & (k1 * c * z_roots <= 1.0)
+    first = jnp.where(usable[0] & (~usable[1] | (roots[0] <= roots[1])), 0, 1)
+    t = jnp.where(first == 0, roots[0], roots[1])
+    hit = jnp.where(first == 0, usable[0], usable[1])
+    t = jnp.where(hit, t, 0.0)
     x, y, z = px + t * dx, py + t * dy, pz + t * dz
     if has_aspheres:
         for _ in range(4):  # Newton on f(t) = z(t) - sag(rho^2(t)), starting at the conic solution
@@ -197,9 +215,9 @@ def _trace_events(
     directions = directions / jnp.linalg.norm(directions, axis=-1, keepdims=True)
     dtype = origins.dtype
 
-    def step(state, event):
+    def apply_event(state, event):
         position, direction, valid, throughput, lost_at, stop_positions, stop_pass = state
-        surface, travel, action, active = event[0], event[1], event[2], event[3] == 1
+        surface, travel, action = event[0], event[1], event[2]
         point, normal, hit = _intersect(
             position, direction, vertex_z[surface], lens.curvature_per_mm[surface], lens.conic[surface],
             lens.aspheric_coefficients[surface], lens.surface_kind[surface], lens.has_aspheres,
@@ -234,18 +252,23 @@ def _trace_events(
         factor = jnp.where(reflect, reflectance, 1.0 - reflectance)
 
         ok = hit & inside & ~total_internal
-        newly_lost = active & valid & ~ok
-        update = active & valid & ok
+        newly_lost = valid & ~ok
+        update = valid & ok
         position = jnp.where(update[:, None], point, position)
         direction = jnp.where(update[:, None], new_direction, direction)
         throughput = jnp.where(update, throughput * factor, throughput)
         lost_at = jnp.where(newly_lost, surface, lost_at)
-        valid = valid & (~active | ok)
-        record = active & is_stop
+        valid = valid & ok
+        record = is_stop
         slot = jax.nn.one_hot(stop_pass, stop_positions.shape[1], dtype=dtype)
         stop_positions = jnp.where(record, stop_positions + slot[None, :, None] * point[:, None, :], stop_positions)
         stop_pass = stop_pass + jnp.where(record, 1, 0)
-        return (position, direction, valid, throughput, lost_at, stop_positions, stop_pass), (position if record_events else None)
+        return position, direction, valid, throughput, lost_at, stop_positions, stop_pass
+
+    def step(state, event):
+        # padded (inactive) events are skipped at run time; cond stays reverse-differentiable
+        state = jax.lax.cond(event[3] == 1, apply_event, lambda state, _: state, state, event)
+        return state, (state[0] if record_events else None)
 
     state = (
         origins,

@@ -323,3 +323,47 @@ def test_one_compilation_serves_every_ghost_path(biotar):
     for path in jaxflare.ghost_paths(biotar):
         jaxflare.trace(biotar, origins, directions, 550.0, path)
     assert jaxflare._trace.TRACE_COMPILATIONS[0] == before  # paths with 1 and 3 stop passes both compiled above
+
+
+DEEP_MENISCUS = """
+name = "deep sphere in a glass block"
+surfaces = [
+  { radius = 10.0, thickness = 15.0, n_d = 1.5, v_d = 60.0, semi_aperture = 9.5, coating = "none" },
+  { radius = "flat", thickness = 30.0, semi_aperture = 20.0, stop = true, coating = "none" },
+]
+"""
+
+
+def test_backward_ghost_ray_hits_the_vertex_sheet_ahead_not_the_far_sheet_behind():
+    # Reflected at the flat back (z = 15), the ghost ray travels back to the R = 10 mm sphere. The
+    # sphere's far sheet (z = 10 + sqrt(100 - h^2)) lies *behind* such a ray for h < 8.7 mm and is
+    # the nearer root along the line; the hit must be the vertex sheet ahead (z = 10 - sqrt(...)).
+    lens = lens_from_toml(DEEP_MENISCUS)
+    heights = np.array([1.0, 3.0, 5.0])
+    result = jaxflare.trace(lens, *_parallel_rays(heights), D_LINE, path=(1, 0), record_events=True)
+    events = jaxflare.path_events(lens, (1, 0))
+    back_at_front = int(np.flatnonzero((events[:, 0] == 0) & (events[:, 1] == -1))[0])
+    hit = np.asarray(result.event_positions[back_at_front])
+    rho = np.hypot(hit[:, 0], hit[:, 1])
+    np.testing.assert_allclose(hit[:, 2], 10.0 - np.sqrt(100.0 - rho**2), atol=1e-9)  # on the vertex sheet
+    assert np.all(hit[:, 2] < 15.0)  # ahead of the backward ray, which left z = 15
+    assert bool(jnp.all(result.valid))
+
+
+CROSSING_SURFACES = """
+name = "surfaces that cross at 4.4 mm height"
+surfaces = [
+  { radius = 10.0, thickness = 1.0, n_d = 1.5, v_d = 60.0, semi_aperture = 9.0, stop = true },
+  { radius = "flat", thickness = 40.0, semi_aperture = 20.0 },
+]
+"""
+
+
+def test_a_surface_behind_the_ray_is_a_miss_not_a_backward_step():
+    # The sphere's sag passes the flat back surface (z = 1) at h = sqrt(19) = 4.36 mm: beyond that
+    # height a ray is already past the flat surface when it leaves the sphere. Stepping backwards
+    # to it (t < 0) would be unphysical; the ray is lost at surface 1 instead.
+    lens = lens_from_toml(CROSSING_SURFACES)
+    result = jaxflare.trace(lens, *_parallel_rays(np.array([2.0, 4.0, 5.0, 7.0])), D_LINE)
+    np.testing.assert_array_equal(np.asarray(result.valid), [True, True, False, False])
+    np.testing.assert_array_equal(np.asarray(result.lost_at_surface), [-1, -1, 1, 1])
