@@ -359,7 +359,33 @@ def build_lens(prescription: LensPrescription, zoom_position: int = 0) -> Lens:
     )
     if np.any(np.isnan(semi_aperture)):
         lens = _derive_semi_apertures(lens, notes)
+    lens = _limit_iris_to_stated_f_number(lens, notes)
     return dataclasses.replace(lens, notes=tuple(notes))
+
+
+def _limit_iris_to_stated_f_number(lens: Lens, notes: list[str]) -> Lens:
+    """Open the iris no wider than the lens's stated maximum aperture.
+
+    A prescription's stop semi-aperture can allow a faster f-number than the product has: for a
+    constant-aperture zoom the stop is sized for the slowest zoom position, and estimated stops are
+    rounded up. The iris of the real lens stops at the stated f-number, so the stop's clear
+    semi-aperture (the widest iris) is reduced to the radius that gives exactly that f-number at
+    this zoom position (the paraxial f-number is inversely proportional to the stop radius).
+    """
+    stated = lens.prescription.stated_f_number
+    if stated is None:
+        return lens
+    wide_open = lens.f_number()
+    if not wide_open < stated * (1.0 - 1e-3):
+        return lens
+    radius = lens.max_stop_radius_mm * wide_open / stated
+    notes.append(
+        f"{lens.prescription.path or lens.name}: iris limited to the stated f/{stated:g} at zoom position {lens.zoom_position}: "
+        f"stop semi-aperture {lens.max_stop_radius_mm:.3f} mm (f/{wide_open:.3g}) reduced to {radius:.3f} mm"
+    )
+    semi = lens.semi_aperture_mm.at[lens.stop_index].set(radius)
+    lens = eqx.tree_at(lambda l: l.semi_aperture_mm, lens, semi)
+    return eqx.tree_at(lambda l: l.stop_radius_mm, lens, semi[lens.stop_index])
 
 
 def _derive_semi_apertures(lens: Lens, notes: list[str]) -> Lens:

@@ -48,11 +48,11 @@ def test_round_trip_through_toml_text():
 @pytest.mark.parametrize(
     "edit, message",
     [
-        (("semi_aperture = 13.0 },", "},"), r"bad\.toml:6: surface 0: missing required key 'semi_aperture'"),
-        (("thickness = 6.0", "thickness = -6.0"), r"bad\.toml:6: surface 0: 'thickness' must be >= 0"),
+        ((", semi_aperture = 13.0 },", " },"), r"bad\.toml:8: surface 0: missing required key 'semi_aperture'"),
+        (("thickness = 6.0", "thickness = -6.0"), r"bad\.toml:8: surface 0: 'thickness' must be >= 0"),
         (("radius = 61.0, thickness = 6.0, medium = \"N-BK7\", semi_aperture = 13.0", "radius = 10.0, thickness = 6.0, medium = \"N-BK7\", semi_aperture = 13.0"), r"surface 0: semi_aperture 13.0 mm is larger than the sphere allows"),
         ((", stop = true", ""), r"bad\.toml: exactly one surface must have 'stop = true', found 0"),
-        (("coating = \"none\"", "colour = \"none\""), r"bad\.toml:7: surface 1: unknown key\(s\) \['colour'\]"),
+        (("coating = \"none\"", "colour = \"none\""), r"bad\.toml:9: surface 1: unknown key\(s\) \['colour'\]"),
         (("f_number = 4.0", "f_number = 4.0\nfocal = 3"), r"unknown key\(s\) \['focal'\]"),
         (("radius = -45.0", "radius = \"steep\""), r"surface 1: 'radius' must be a number or \"flat\""),
         (("aperture_blades = 6", "aperture_blades = 2"), r"'aperture_blades' must be 0 \(circular\) or an integer >= 3"),
