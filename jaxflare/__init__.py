@@ -1,6 +1,7 @@
 """jaxflare: differentiable, physically based lens-flare simulation in JAX.
 
-Public API: :func:`load_lens`, :class:`Lens`, :func:`trace`, :func:`ghost_paths`, the glass
+Public API: :func:`load_lens`, :class:`Lens`, :func:`trace`, :func:`ghost_paths`, polynomial
+path systems (:func:`path_system`, :class:`PathSystem`), the glass
 catalog (:func:`find_glass`, :func:`model_glass`) and the lens file readers and writers.
 """
 
@@ -16,6 +17,16 @@ from ._prescription import (
     MediumSpec,
     SurfaceSpec,
 )
+from ._path_system import (
+    PathDomain,
+    PathSystem,
+    PathSystemReport,
+    half_field_of_view_deg,
+    make_domain,
+    path_system,
+    path_systems,
+    refit,
+)
 from ._trace import TraceResult, ghost_paths, path_events, path_fresnel_factor, trace
 
 __version__ = "0.1.0"
@@ -29,6 +40,9 @@ __all__ = [
     "LensPrescription",
     "LensWarning",
     "MediumSpec",
+    "PathDomain",
+    "PathSystem",
+    "PathSystemReport",
     "SurfaceSpec",
     "TraceResult",
     "UnknownGlassError",
@@ -36,14 +50,19 @@ __all__ = [
     "bundled_lens_names",
     "find_glass",
     "ghost_paths",
+    "half_field_of_view_deg",
     "lens_toml_text",
     "load_lens",
+    "make_domain",
     "model_glass",
     "nearest_glass",
     "parse_lens_toml",
     "path_events",
     "path_fresnel_factor",
+    "path_system",
+    "path_systems",
     "read_lens_toml",
     "read_prescription",
+    "refit",
     "trace",
 ]

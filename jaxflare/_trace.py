@@ -45,13 +45,18 @@ class TraceResult(eqx.Module):
     """Product of the Fresnel transmittances and reflectances along the path (unpolarised, with
     coatings, at each ray's own angles and wavelength); 0 where invalid."""
     lost_at_surface: Int[Array, " N"]
-    """Surface index where the ray was lost (-1 if valid, ``num_surfaces`` if it missed the sensor)."""
+    """Surface index where the ray was lost (-1 if valid, ``num_surfaces`` if it missed the sensor,
+    -2 for an untrusted ray a path system did not evaluate)."""
     stop_positions: Float[Array, "N P 3"]
     """Position where the ray crossed the stop surface, for each pass through it (P = 1 for the
     primary path, 1 or 3 for ghosts); zeros for passes a path does not make."""
     event_positions: Float[Array, "E N 3"] | None = None
     """With ``record_events=True``: the ray position after every event of the path (surface hits
     in path order, padded events repeat the last position). For drawing ray paths."""
+    trusted: Bool[Array, " N"] | None = None
+    """From a :class:`~jaxflare.PathSystem`: False where the polynomial was not validated for the
+    ray's inputs and the ray was not re-traced exactly (such rays are also invalid, with
+    ``lost_at_surface == -2``). None from the exact tracer, whose every ray is trusted."""
 
 
 def ghost_paths(lens: Lens) -> list[GhostPath]:
