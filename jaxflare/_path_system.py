@@ -43,7 +43,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from ._io import write_bytes_atomic
 from ._lens import Lens
 from ._polybasis import monomial_exponents, monomials
-from ._trace import TraceResult, _check_path, _inside_iris, _stop_pass_count, _surface_sag_slope, _trace_events, path_events
+from ._trace import TraceResult, _check_path, _inside_iris, _stop_pass_count, _surface_sag_slope, _trace_events, path_events, ray_arguments
 
 Construction = Literal["fit", "taylor"]
 GhostPath = tuple[int, int]
@@ -316,15 +316,15 @@ class PathSystem(eqx.Module):
         return eqx.tree_at(lambda s: s.lens, self, lens)
 
     def __call__(self, origins: ArrayLike, directions: ArrayLike, wavelength_nm: ArrayLike = 587.56) -> TraceResult:
-        origins = jnp.asarray(origins)
-        directions = jnp.asarray(directions)
-        if origins.ndim != 2 or origins.shape[-1] != 3 or directions.shape != origins.shape:
-            raise ValueError(f"origins and directions must both have shape (N, 3), got {origins.shape} and {directions.shape}")
-        if not jnp.issubdtype(origins.dtype, jnp.floating):
-            origins = origins.astype(jnp.result_type(float))
-        directions = directions.astype(origins.dtype)
-        wavelength = jnp.broadcast_to(jnp.asarray(wavelength_nm, origins.dtype), origins.shape[:1])
-        return _evaluate(self.kernel(), origins, directions, wavelength)
+        """Evaluate the path for (N, 3) ``origins`` and ``directions`` (mm, lens frame, as for
+        :func:`jaxflare.trace`) and scalar or (N,) ``wavelength_nm``.
+
+        Untrusted rays (outside the domain, or in a part of it where validation failed or the
+        error estimate exceeds the limit) are traced exactly, up to ``fallback_fraction`` of the
+        batch; beyond that they come back invalid with ``trusted`` False and ``lost_at_surface``
+        -2. Jit-compiled; systems of one lens with the same degree and stop passes share it.
+        """
+        return _evaluate(self.kernel(), *ray_arguments(origins, directions, wavelength_nm))
 
     def kernel(self, fallback: str | None = None) -> "_Kernel":
         """What evaluation needs: systems of one lens with the same degree, terms and number of

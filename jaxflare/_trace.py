@@ -305,6 +305,20 @@ def _trace_events(
     )
 
 
+def ray_arguments(origins: ArrayLike, directions: ArrayLike, wavelength_nm: ArrayLike) -> tuple[Array, Array, Array]:
+    """Check and convert the ray inputs shared by :func:`trace` and path systems: (N, 3) origins
+    and directions in one floating dtype, and one wavelength per ray."""
+    origins = jnp.asarray(origins)
+    directions = jnp.asarray(directions)
+    if origins.ndim != 2 or origins.shape[-1] != 3 or directions.shape != origins.shape:
+        raise ValueError(f"origins and directions must both have shape (N, 3), got {origins.shape} and {directions.shape}")
+    if not jnp.issubdtype(origins.dtype, jnp.floating):
+        origins = origins.astype(jnp.result_type(float))
+    directions = directions.astype(origins.dtype)
+    wavelength = jnp.broadcast_to(jnp.asarray(wavelength_nm, origins.dtype), origins.shape[:1])
+    return origins, directions, wavelength
+
+
 def trace(
     lens: Lens,
     origins: ArrayLike,
@@ -333,14 +347,7 @@ def trace(
     Differentiable with respect to ray inputs and the lens's array fields; jit-compiled once per
     lens structure (all paths of a lens share one compilation).
     """
-    origins = jnp.asarray(origins)
-    directions = jnp.asarray(directions)
-    if origins.ndim != 2 or origins.shape[-1] != 3 or directions.shape != origins.shape:
-        raise ValueError(f"origins and directions must both have shape (N, 3), got {origins.shape} and {directions.shape}")
-    if not jnp.issubdtype(origins.dtype, jnp.floating):
-        origins = origins.astype(jnp.result_type(float))
-    directions = directions.astype(origins.dtype)
-    wavelength = jnp.broadcast_to(jnp.asarray(wavelength_nm, origins.dtype), origins.shape[:1])
+    origins, directions, wavelength = ray_arguments(origins, directions, wavelength_nm)
     events = path_events(lens, path)
     return _trace_events(
         lens, origins, directions, wavelength, jnp.asarray(events), _stop_pass_count(events, lens.stop_index), record_events
