@@ -147,24 +147,42 @@ def test_taylor_is_exact_near_the_axis_and_worse_than_the_fit_at_the_rim(biotar)
     assert taylor.report.error_um_max > fit.report.error_um_max
 
 
-@pytest.mark.parametrize("construction", ["fit", "taylor"])
-def test_large_errors_are_flagged_not_trusted(construction):
-    # The fisheye's 77 degree half field is far beyond what a degree-3 polynomial can follow: most
-    # of the domain must be refused, and the rays that are answered must be right.
-    lens = jaxflare.load_lens("minolta_fisheye")
-    system = jaxflare.path_system(lens, None, degree=3, construction=construction, **FAST)
-    origins, directions, wavelength = domain_rays(system, 8192, seed=7)
-    exact = jaxflare.trace(lens, origins, directions, wavelength)
+def assert_wrong_answers_are_caught(system, lens, path=None, seed=7):
+    """On fresh in-domain rays: the polynomial really is wrong over part of the domain, and at
+    least 99 % of the rays where it is wrong by more than three tolerances are untrusted or
+    invalid, while the trusted answers meet the tolerance."""
+    origins, directions, wavelength = domain_rays(system, 8192, seed=seed)
+    exact = jaxflare.trace(lens, origins, directions, wavelength, path)
     poly = system.polynomial(origins, directions, wavelength)
-    both = np.asarray(poly.valid) & np.asarray(exact.valid)
-    error = sensor_error_mm(poly, exact)
+    raw = eqx.tree_at(lambda s: (s.estimate_limit_mm, s.trust_table), system, (jnp.inf, jnp.ones_like(system.trust_table)))
+    raw_result = raw.polynomial(origins, directions, wavelength)
     tolerance = system.report.tolerance_um * 1e-3
-    wrong = np.asarray(exact.valid) & (error > 3 * tolerance)
-    assert wrong.sum() > 100  # the polynomial really is wrong over much of the domain
+    wrong = np.asarray(exact.valid & raw_result.valid) & (sensor_error_mm(raw_result, exact) > 3 * tolerance)
+    assert wrong.sum() > 50
     caught = ~np.asarray(poly.trusted) | ~np.asarray(poly.valid)
     assert caught[wrong].mean() > 0.99
-    assert np.percentile(error[both], 99) <= 3 * tolerance if both.any() else True
+    answered = np.asarray(poly.valid & poly.trusted & exact.valid)
+    if answered.sum() > 20:
+        assert np.percentile(sensor_error_mm(poly, exact)[answered], 99) <= 1.5 * tolerance
+    return poly
+
+
+@pytest.mark.parametrize("construction", ["fit", "taylor"])
+def test_wide_angle_lens_errors_are_flagged_not_trusted(construction):
+    # The fisheye's 77 degree half field is far beyond what a degree-3 polynomial can follow.
+    lens = jaxflare.load_lens("minolta_fisheye")
+    system = jaxflare.path_system(lens, None, degree=3, construction=construction, **FAST)
+    assert_wrong_answers_are_caught(system, lens)
     assert system.report.trusted_fraction < 0.5
+
+
+@pytest.mark.parametrize("construction", ["fit", "taylor"])
+def test_strongly_curved_ghost_path_errors_are_flagged(biotar, construction):
+    # Ghost (5, 0) reflects off the front surface from inside: its sensor map bends so strongly
+    # that at degree 5 the error is hundreds of micrometres over most of the domain.
+    system = jaxflare.path_system(biotar, (5, 0), degree=5, construction=construction, **FAST)
+    assert system.report.error_um_p99 > 10 * system.report.tolerance_um
+    assert_wrong_answers_are_caught(system, biotar, (5, 0))
 
 
 TIR_LENS = """
