@@ -17,16 +17,10 @@ from ._prescription import (
     MediumSpec,
     SurfaceSpec,
 )
-from ._path_system import (
-    PathDomain,
-    PathSystem,
-    PathSystemReport,
-    half_field_of_view_deg,
-    make_domain,
-    path_system,
-    path_systems,
-    refit,
-)
+from ._path_build import default_cache_dir, path_system, path_systems
+from ._path_domain import PathDomain, half_field_of_view_deg, make_domain
+from ._path_fit import refit
+from ._path_system import PathSystem, PathSystemReport
 from ._trace import TraceResult, ghost_paths, path_events, path_fresnel_factor, trace
 
 __version__ = "0.1.0"
@@ -47,6 +41,7 @@ __all__ = [
     "TraceResult",
     "UnknownGlassError",
     "build_lens",
+    "default_cache_dir",
     "bundled_lens_names",
     "find_glass",
     "ghost_paths",

@@ -57,15 +57,50 @@ def monomials_numpy(variables: np.ndarray, exponents: np.ndarray) -> np.ndarray:
     return out
 
 
-def monomials(variables: jnp.ndarray, exponents: np.ndarray) -> jnp.ndarray:
-    """(N, M) monomial values (JAX): a power table per variable by repeated multiplication (exact
-    and differentiable for negative values too), gathered and multiplied."""
+def monomial_rows(variables: jnp.ndarray, exponents: np.ndarray) -> jnp.ndarray:
+    """(M, N) monomial values (JAX), one row per term: power tables of each variable (exact and
+    differentiable for negative values too), gathered by row and multiplied. Rows keep each
+    term's values contiguous, which is several times faster on a CPU than (N, M) columns."""
+    exponents = np.asarray(exponents)
     degree = int(exponents.max(initial=0))
-    table = [jnp.ones_like(variables)]
+    by_variable = variables.T  # (V, N)
+    powers = [jnp.ones_like(by_variable)]
     for _ in range(degree):
-        table.append(table[-1] * variables)
-    powers = jnp.stack(table, axis=-1)  # (N, V, D+1)
-    out = powers[:, 0, exponents[:, 0]]
-    for k in range(1, variables.shape[1]):
-        out = out * powers[:, k, exponents[:, k]]
+        powers.append(powers[-1] * by_variable)
+    table = jnp.stack(powers, axis=1)  # (V, D+1, N)
+    out = table[0, exponents[:, 0]]
+    for k in range(1, by_variable.shape[0]):
+        out = out * table[k, exponents[:, k]]
     return out
+
+
+def monomials(variables: jnp.ndarray, exponents: np.ndarray) -> jnp.ndarray:
+    """(N, M) monomial values (JAX): the design matrix of a least-squares fit."""
+    return monomial_rows(variables, exponents).T
+
+
+@functools.lru_cache(maxsize=64)
+def graded_plan(exponents_key: tuple[tuple[int, ...], ...]) -> tuple[tuple[np.ndarray, tuple[tuple[int, int], ...]], ...] | None:
+    """Build-up of a full basis degree by degree, or None if ``exponents_key`` is not one in the
+    order of :func:`monomial_exponents`.
+
+    In that order the monomials of degree k are, for each variable v in turn, x_v times the
+    monomials of degree k - 1 that use only variables v and later, which are a contiguous tail of
+    the degree-(k - 1) block. So each degree is built from slices and products, with no gather:
+    returns, for each degree k >= 1, its columns and the (variable, start of the tail) pieces.
+    """
+    exponents = np.asarray(exponents_key, dtype=np.int64).reshape(-1, NUM_VARIABLES)
+    degree = int(exponents.sum(axis=1).max(initial=0))
+    if len(exponents) != len(monomial_exponents(degree)) or not np.array_equal(exponents, monomial_exponents(degree)):
+        return None
+    totals = exponents.sum(axis=1)
+    plan = []
+    for k in range(1, degree + 1):
+        previous = exponents[totals == k - 1]
+        pieces = []
+        for v in range(NUM_VARIABLES):
+            uses_only_later = np.flatnonzero(~previous[:, :v].any(axis=1))
+            pieces.append((v, int(uses_only_later[0])))
+        plan.append((np.flatnonzero(totals == k).astype(np.int32), tuple(pieces)))
+    return tuple(plan)
+

@@ -1,0 +1,297 @@
+"""Building a path system's polynomial: fit samples, clipping events, the two constructions.
+
+``"fit"``: least squares against exact float64 traces of the lens with its clear apertures
+widened a little, on samples of the domain where rays get through. ``"taylor"``: the truncated
+Taylor expansion of :mod:`._taylor`, with the throughput fitted. Both produce the error estimator
+(the polynomial minus its degree-(d - 1) counterpart).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from ._lens import Lens
+from ._path_domain import TRUST_GRID, PathDomain, cell_index, rays_from_variables, sample_variables
+from ._path_system import AUXILIARY_DEGREE, PathSystem, precise_columns
+from ._polybasis import monomials
+from ._trace import TraceResult, _stop_pass_count, _trace_events, path_events
+
+_APERTURE_MARGIN = 1.03
+"""Clear apertures are widened by this factor for the fit samples, so each polynomial is also
+accurate slightly beyond the rims it is tested against (capped where a surface ends)."""
+
+
+def widened_lens(lens: Lens) -> Lens:
+    """The lens with every clear aperture widened by ``_APERTURE_MARGIN`` (not past the point where
+    a surface ends) and a circular iris at the widened stop: fit samples beyond the rims.
+    Pure ``jax.numpy``, so :func:`refit` stays differentiable."""
+    c = jnp.abs(lens.curvature_per_mm)
+    k1 = 1.0 + lens.conic
+    semi = lens.semi_aperture_mm
+    curved = (c > 0) & (k1 > 0)
+    limit = jnp.where(curved, 0.999 / jnp.where(curved, c * jnp.sqrt(jnp.where(curved, k1, 1.0)), 1.0), jnp.inf)
+    widened = jnp.minimum(semi * _APERTURE_MARGIN, jnp.maximum(limit, semi))
+    lens = eqx.tree_at(lambda l: (l.semi_aperture_mm, l.stop_radius_mm), lens, (widened, widened[lens.stop_index]))
+    return lens.with_aperture(blades=0) if lens.aperture_blades else lens
+
+
+def trace_samples(lens: Lens, path, domain: PathDomain, variables: np.ndarray, record_events: bool = False) -> TraceResult:
+    origins, directions, wavelength = rays_from_variables(domain, variables)
+    events = path_events(lens, path)
+    return _trace_events(
+        lens, jnp.asarray(origins), jnp.asarray(directions), jnp.asarray(wavelength), jnp.asarray(events),
+        _stop_pass_count(events, lens.stop_index), record_events,
+    )
+
+
+def _choose_clip_events(lens: Lens, path, wide: TraceResult, max_clip_events: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """Greedy choice of the event rows (not the stop) whose real clear aperture clips the most
+    widened-lens rays not already clipped by the iris or a chosen event."""
+    events = path_events(lens, path)
+    semi = np.asarray(lens.semi_aperture_mm, np.float64)
+    positions = np.asarray(wide.event_positions)  # (E, N, 3)
+    valid = np.asarray(wide.valid)
+    radius2 = positions[..., 0] ** 2 + positions[..., 1] ** 2
+    candidates = [r for r in range(len(events)) if events[r, 3] == 1 and events[r, 0] != lens.stop_index]
+    clipped = {r: valid & (radius2[r] > semi[events[r, 0]] ** 2) for r in candidates}
+    stop_rows = [r for r in range(len(events)) if events[r, 3] == 1 and events[r, 0] == lens.stop_index]
+    explained = np.zeros_like(valid)
+    stop_radius = float(lens.stop_radius_mm)
+    for r in stop_rows:
+        explained |= valid & (radius2[r] > stop_radius**2)
+    chosen: list[int] = []
+    threshold = max(1, int(1e-3 * max(1, valid.sum())))
+    for _ in range(max_clip_events):
+        gains = {r: int(np.sum(clipped[r] & ~explained)) for r in candidates if r not in chosen}
+        if not gains:
+            break
+        best = max(gains, key=gains.get)
+        if gains[best] < threshold:
+            break
+        chosen.append(best)
+        explained |= clipped[best]
+    chosen.sort()
+    return tuple(chosen), tuple(int(events[r, 0]) for r in chosen)
+
+
+def _output_matrix(result: TraceResult, clip_rows: Sequence[int], clip_slots: int) -> Array:
+    columns = [result.positions[:, 0], result.positions[:, 1], result.directions[:, 0], result.directions[:, 1]]
+    for p in range(result.stop_positions.shape[1]):
+        columns += [result.stop_positions[:, p, 0], result.stop_positions[:, p, 1]]
+    for r in clip_rows:
+        columns += [result.event_positions[r, :, 0], result.event_positions[r, :, 1]]
+    columns += [jnp.zeros_like(result.throughput)] * (2 * (clip_slots - len(clip_rows)))  # inactive slots
+    columns.append(result.throughput)
+    return jnp.stack(columns, axis=-1)
+
+
+def _weighted_least_squares(design: Array, targets: Array, weights: Array, support: Array | None) -> Array:
+    """Coefficients minimising sum_i w_i |design_i c - targets_i|^2 per output column (normal
+    equations with a tiny ridge, Cholesky); ``support`` (M, O) restricts each column's terms."""
+    weighted = design * weights[:, None]
+    gram = weighted.T @ design
+    scale = jnp.mean(jnp.diag(gram)) + 1e-300
+    ridge = 1e-11 * scale
+    rhs = weighted.T @ targets
+    if support is None:
+        factor = jax.scipy.linalg.cho_factor(gram + ridge * jnp.eye(gram.shape[0], dtype=gram.dtype))
+        return jax.scipy.linalg.cho_solve(factor, rhs)
+
+    def solve_one(mask, b):
+        m = mask.astype(gram.dtype)
+        g = gram * m[:, None] * m[None, :] + jnp.diag(1.0 - m) * scale + ridge * jnp.eye(gram.shape[0], dtype=gram.dtype)
+        factor = jax.scipy.linalg.cho_factor(g)
+        return jax.scipy.linalg.cho_solve(factor, b * m) * m
+
+    return jax.vmap(solve_one, in_axes=(1, 1), out_axes=1)(support, rhs)
+
+
+def _fit_columns(wide: TraceResult, variables: np.ndarray, exponents: np.ndarray, clip_rows, clip_slots: int, support=None):
+    """Least-squares coefficients of every output on exact traces ``wide`` of the widened lens,
+    and the error estimator: the sensor columns minus those of the fit without the top degree."""
+    design = monomials(jnp.asarray(variables), exponents)
+    targets = _output_matrix(wide, clip_rows, clip_slots)
+    weights = wide.valid.astype(design.dtype)
+    totals = exponents.sum(axis=1)
+    precise = precise_columns(wide.stop_positions.shape[1])
+    auxiliary = np.setdiff1d(np.arange(targets.shape[1]), precise)
+    low = np.flatnonzero(totals <= AUXILIARY_DEGREE)
+    if support is None:
+        coefficients = jnp.zeros((len(exponents), targets.shape[1]), design.dtype)
+        coefficients = coefficients.at[:, precise].set(_weighted_least_squares(design, targets[:, precise], weights, None))
+        auxiliary_fit = _weighted_least_squares(design[:, low], targets[:, auxiliary], weights, None)
+        coefficients = coefficients.at[low[:, None], auxiliary[None, :]].set(auxiliary_fit)
+    else:
+        support = support.at[:, auxiliary].set(support[:, auxiliary] & jnp.asarray(totals <= AUXILIARY_DEGREE)[:, None])
+        coefficients = _weighted_least_squares(design, targets, weights, support)
+    lower = np.flatnonzero(exponents.sum(axis=1) < exponents.sum(axis=1).max())
+    lower_support = None if support is None else support[lower][:, :2]
+    lower_fit = _weighted_least_squares(design[:, lower], targets[:, :2], weights, lower_support)
+    estimator = coefficients[:, :2].at[lower].add(-lower_fit)
+    return coefficients, estimator
+
+
+def refit(system: PathSystem, lens: Lens) -> PathSystem:
+    """Re-fit the coefficients of a ``"fit"`` system for ``lens`` on the same samples (same
+    structure: path, terms, clipping events, domain, trust table). Differentiable with respect to
+    the lens's arrays, so gradients of polynomial outputs with respect to lens parameters can be
+    taken through it; the trust table and error limit are not re-validated."""
+    if system.construction != "fit":
+        raise ValueError("refit needs a system built with construction='fit'")
+    variables = np.asarray(system.fit_variables, np.float64)
+    exponents = np.asarray(system.exponents, np.int32)
+    wide = trace_samples(widened_lens(lens), system.path, system.domain, variables, record_events=bool(system.clip_event_rows))
+    coefficients, estimator = _fit_columns(wide, variables, exponents, system.clip_event_rows, system.clip_active.shape[0])
+    return eqx.tree_at(lambda s: (s.lens, s.coefficients, s.error_estimator), system, (lens, coefficients, estimator))
+
+
+_REGION_GRID = (12, 12, 6, 6)
+"""Cells over (u, v, s, t) in which the fit sampling tracks where rays get through."""
+
+
+def _region_cells(variables: np.ndarray) -> tuple[np.ndarray, ...]:
+    grid = np.asarray(_REGION_GRID)
+    return tuple(np.clip(np.floor((variables[:, :4] + 1.0) * 0.5 * grid).astype(int), 0, grid - 1).T)
+
+
+def _with_neighbours(mask: np.ndarray) -> np.ndarray:
+    out = mask.copy()
+    for axis in range(mask.ndim):
+        padded = np.pad(mask, [(1, 1) if a == axis else (0, 0) for a in range(mask.ndim)])
+        size = mask.shape[axis]
+        out |= np.take(padded, range(0, size), axis) | np.take(padded, range(2, size + 2), axis)
+    return out
+
+
+def sample_region(region: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    """Up to ``count`` domain samples uniform within the cells of ``region`` (a boolean grid
+    of ``_REGION_GRID`` over (u, v, s, t)), w uniform."""
+    cells = np.argwhere(region)
+    if len(cells) == 0:
+        return np.zeros((0, 5))
+    width = 2.0 / np.asarray(_REGION_GRID)
+    pick = cells[rng.integers(len(cells), size=2 * count)]
+    variables = np.empty((2 * count, 5))
+    variables[:, :4] = -1.0 + (pick + rng.random((2 * count, 4))) * width
+    variables[:, 4] = rng.uniform(-1.0, 1.0, 2 * count)
+    inside = (variables[:, 0] ** 2 + variables[:, 1] ** 2 <= 1.0) & (variables[:, 2] ** 2 + variables[:, 3] ** 2 <= 1.0)
+    return variables[inside][:count]
+
+
+def fit_samples(lens: Lens, path, domain: PathDomain, needed: int, seed: int, max_candidates: int = 2**19):
+    """Domain samples whose rays get through ``lens`` (exact traces with the events recorded).
+
+    Returns ``(variables, traces, region)``: at least ``needed`` rays where that takes at most
+    ``max_candidates`` candidates, and the cells (with their neighbours) where rays got through.
+    The first batch is uniform over the domain. When few of its rays get through (a fast zoom at
+    its wide end passes about 1 % of the front lens), later batches are drawn from the region
+    found so far, which each batch extends.
+    """
+    rng = np.random.default_rng(seed)
+    chunk = 16384
+    kept_variables, kept_traces, candidates = [], [], 0
+    hit = np.zeros(_REGION_GRID, bool)
+    variables = sample_variables(chunk, rng)
+    while len(variables):
+        traces = trace_samples(lens, path, domain, variables, record_events=True)
+        valid = np.asarray(traces.valid)
+        candidates += len(variables)
+        kept_variables.append(variables[valid])
+        kept_traces.append(_select_rays(traces, valid))
+        hit[_region_cells(variables[valid])] = True
+        total = sum(len(v) for v in kept_variables)
+        if total >= needed or candidates >= max_candidates:
+            break
+        variables = sample_region(_with_neighbours(hit), chunk, rng)
+    return np.concatenate(kept_variables), _concatenate_rays(kept_traces), _with_neighbours(hit)
+
+
+def _select_rays(traces: TraceResult, keep: np.ndarray) -> TraceResult:
+    return TraceResult(
+        positions=traces.positions[keep], directions=traces.directions[keep], valid=traces.valid[keep],
+        throughput=traces.throughput[keep], lost_at_surface=traces.lost_at_surface[keep],
+        stop_positions=traces.stop_positions[keep], event_positions=traces.event_positions[:, keep],
+    )
+
+
+def _concatenate_rays(parts: Sequence[TraceResult]) -> TraceResult:
+    def join(name, axis=0):
+        return jnp.concatenate([getattr(p, name) for p in parts], axis=axis)
+
+    return TraceResult(
+        positions=join("positions"), directions=join("directions"), valid=join("valid"), throughput=join("throughput"),
+        lost_at_surface=join("lost_at_surface"), stop_positions=join("stop_positions"), event_positions=join("event_positions", 1),
+    )
+
+
+def structure_arrays(lens: Lens, path, clip_surfaces: Sequence[int], slots: int) -> dict:
+    index = np.zeros(slots, np.int32)
+    index[: len(clip_surfaces)] = clip_surfaces
+    return dict(
+        events=jnp.asarray(path_events(lens, path)), clip_surface_index=jnp.asarray(index),
+        clip_active=jnp.asarray(np.arange(slots) < len(clip_surfaces)),
+    )
+
+
+def build_polynomial(lens, path, domain, exponents, construction, sparse_terms, max_clip_events, fit_rays, seed, tolerance_mm):
+    """The polynomial (coefficients, error estimator, clipping events), not yet validated, and the
+    region of the domain where the fit samples got through (see :func:`fit_samples`)."""
+    events = path_events(lens, path)
+    num_passes = _stop_pass_count(events, lens.stop_index)
+    variables, wide, region = fit_samples(widened_lens(lens), path, domain, fit_rays, seed)
+    clip_rows, clip_surfaces = _choose_clip_events(lens, path, wide, max_clip_events)
+    if construction == "fit":
+        coefficients, estimator = _fit_columns(wide, variables, exponents, clip_rows, max_clip_events)
+        if sparse_terms is not None and sparse_terms < len(exponents):
+            design = monomials(jnp.asarray(variables), exponents)
+            weights = wide.valid.astype(design.dtype)
+            contribution = jnp.abs(coefficients) * jnp.sqrt(jnp.sum(design**2 * weights[:, None], axis=0))[:, None]
+            rank = jnp.argsort(-contribution, axis=0)[:sparse_terms]
+            support = jnp.zeros(coefficients.shape, bool).at[rank, jnp.arange(coefficients.shape[1])[None, :]].set(True)
+            support = support.at[0].set(True)  # always keep the constant term
+            used = np.flatnonzero(np.asarray(support).any(axis=1))
+            exponents = exponents[used]
+            coefficients, estimator = _fit_columns(wide, variables, exponents, clip_rows, max_clip_events, support[used])
+    else:
+        from ._taylor import taylor_path_coefficients
+
+        series = taylor_path_coefficients(
+            lens, path, int(exponents.max(initial=0)) if len(exponents) else 0,
+            entrance_z_mm=domain.entrance_z_mm, front_radius_mm=domain.entrance_radius_mm, sin_max_field=domain.sin_max_field,
+            wavelength_center_nm=domain.wavelength_center_nm, wavelength_half_width_nm=domain.wavelength_half_width_nm,
+            record_event_rows=clip_rows,
+        )
+        geometric = [series["sensor"][0], series["sensor"][1], series["direction"][0], series["direction"][1]]
+        for p in range(num_passes):
+            geometric += [series["stop"][p, 0], series["stop"][p, 1]]
+        for k in range(len(clip_rows)):
+            geometric += [series["events"][k, 0], series["events"][k, 1]]
+        geometric += [np.zeros(len(exponents))] * (2 * (max_clip_events - len(clip_rows)))
+        # the series carries geometry only: the Fresnel throughput (thin-film interference) is fitted
+        totals = exponents.sum(axis=1)
+        low = np.flatnonzero(totals <= AUXILIARY_DEGREE)
+        design = monomials(jnp.asarray(variables), exponents[low])
+        throughput = _weighted_least_squares(design, wide.throughput[:, None], wide.valid.astype(design.dtype), None)
+        coefficients = jnp.asarray(np.stack(geometric + [np.zeros(len(exponents))], axis=-1))
+        coefficients = coefficients.at[low, -1:].set(throughput)
+        auxiliary = np.setdiff1d(np.arange(coefficients.shape[1]), precise_columns(num_passes))
+        coefficients = coefficients.at[np.flatnonzero(totals > AUXILIARY_DEGREE)[:, None], auxiliary[None, :]].set(0.0)
+        top = totals == totals.max()
+        estimator = coefficients[:, :2] * jnp.asarray(top, coefficients.dtype)[:, None]  # the truncation term
+    system = PathSystem(
+        lens=lens, coefficients=coefficients, trust_table=jnp.ones(TRUST_GRID, bool), path=path,
+        fit_variables=jnp.asarray(variables), path_blocked=jnp.asarray(len(variables) == 0),
+        error_estimator=estimator, estimate_limit_mm=jnp.asarray(tolerance_mm),
+        **structure_arrays(lens, path, clip_surfaces, max_clip_events),
+        degree=int(exponents.max(initial=0)), construction=construction, exponents=tuple(map(tuple, np.asarray(exponents).tolist())),
+        domain=domain, num_stop_passes=num_passes, clip_event_rows=clip_rows, clip_surfaces=clip_surfaces,
+        report=None, fallback="none",
+    )
+    return system, region
+
