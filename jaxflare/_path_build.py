@@ -71,7 +71,7 @@ def path_system(
     sparse_terms: int | None = None,
     max_clip_events: int = 4,
     fit_rays: int | None = None,
-    validation_rays: int = 32768,
+    validation_rays: int = 16384,
     tolerance_mm: float | None = None,
     max_mask_mismatch: float = 0.1,
     fallback: Literal["exact", "none"] = "exact",
@@ -95,7 +95,8 @@ def path_system(
         max_clip_events: clear apertures (besides the iris) tested per ray; the ones that clip the
             most rays are chosen; rays lost elsewhere show up as ``unmodelled_clip_fraction``.
         fit_rays: rays that get through the path to fit on (default 8 per term, at least 2048);
-            sampling stops short of it after 2^19 candidates.
+            sampling stops short of it after 2^15 candidates (4 batches), which bounds the
+            build time of paths that few rays get through.
         validation_rays: exact traces used to measure the error and build the trust table: half
             uniform over the domain, half where the fit samples got through.
         tolerance_mm: sensor-position error a cell of the domain may have and still be trusted

@@ -112,10 +112,35 @@ def _weighted_least_squares(design: Array, targets: Array, weights: Array, suppo
     return jax.vmap(solve_one, in_axes=(1, 1), out_axes=1)(support, rhs)
 
 
-def _fit_columns(wide: TraceResult, variables: np.ndarray, exponents: np.ndarray, clip_rows, clip_slots: int, support=None):
+_SAMPLE_BUCKET = 2048
+"""Fit sample counts are padded (with invalid rays) to a multiple of this, so that one compiled
+fit serves the paths of a lens."""
+
+
+def _fit_columns(wide: TraceResult, variables, exponents: np.ndarray, clip_rows, clip_slots: int, support=None):
     """Least-squares coefficients of every output on exact traces ``wide`` of the widened lens,
     and the error estimator: the sensor columns minus those of the fit without the top degree."""
-    design = monomials(jnp.asarray(variables), exponents)
+    count = variables.shape[0]
+    size = max(_SAMPLE_BUCKET, -(-count // _SAMPLE_BUCKET) * _SAMPLE_BUCKET)
+
+    def pad(x, axis=0):
+        widths = [(0, 0)] * x.ndim
+        widths[axis] = (0, size - count)
+        return jnp.pad(jnp.asarray(x), widths)
+
+    padded = TraceResult(
+        positions=pad(wide.positions), directions=pad(wide.directions), valid=pad(wide.valid), throughput=pad(wide.throughput),
+        lost_at_surface=pad(wide.lost_at_surface), stop_positions=pad(wide.stop_positions),
+        event_positions=None if wide.event_positions is None else pad(wide.event_positions, 1),
+    )
+    exponents_key = tuple(map(tuple, np.asarray(exponents).tolist()))
+    return _fit_columns_jit(padded, pad(variables), exponents_key, tuple(clip_rows), clip_slots, support)
+
+
+@eqx.filter_jit
+def _fit_columns_jit(wide: TraceResult, variables, exponents_key, clip_rows, clip_slots: int, support):
+    exponents = np.asarray(exponents_key, dtype=np.int64)
+    design = monomials(variables, exponents)
     targets = _output_matrix(wide, clip_rows, clip_slots)
     weights = wide.valid.astype(design.dtype)
     totals = exponents.sum(axis=1)
@@ -170,21 +195,26 @@ def _with_neighbours(mask: np.ndarray) -> np.ndarray:
 
 
 def sample_region(region: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
-    """Up to ``count`` domain samples uniform within the cells of ``region`` (a boolean grid
-    of ``_REGION_GRID`` over (u, v, s, t)), w uniform."""
+    """Exactly ``count`` domain samples (none if ``region`` is empty), uniform within the cells of
+    ``region`` (a boolean grid of ``_REGION_GRID`` over (u, v, s, t)), w uniform. A fixed count
+    keeps the traced shapes, and so the compiled tracer, the same from batch to batch."""
     cells = np.argwhere(region)
     if len(cells) == 0:
         return np.zeros((0, 5))
     width = 2.0 / np.asarray(_REGION_GRID)
-    pick = cells[rng.integers(len(cells), size=2 * count)]
-    variables = np.empty((2 * count, 5))
-    variables[:, :4] = -1.0 + (pick + rng.random((2 * count, 4))) * width
-    variables[:, 4] = rng.uniform(-1.0, 1.0, 2 * count)
-    inside = (variables[:, 0] ** 2 + variables[:, 1] ** 2 <= 1.0) & (variables[:, 2] ** 2 + variables[:, 3] ** 2 <= 1.0)
-    return variables[inside][:count]
+    found, total = [], 0
+    while total < count:
+        pick = cells[rng.integers(len(cells), size=2 * count)]
+        variables = np.empty((2 * count, 5))
+        variables[:, :4] = -1.0 + (pick + rng.random((2 * count, 4))) * width
+        variables[:, 4] = rng.uniform(-1.0, 1.0, 2 * count)
+        inside = (variables[:, 0] ** 2 + variables[:, 1] ** 2 <= 1.0) & (variables[:, 2] ** 2 + variables[:, 3] ** 2 <= 1.0)
+        found.append(variables[inside])
+        total += int(inside.sum())
+    return np.concatenate(found)[:count]
 
 
-def fit_samples(lens: Lens, path, domain: PathDomain, needed: int, seed: int, max_candidates: int = 2**19):
+def fit_samples(lens: Lens, path, domain: PathDomain, needed: int, seed: int, max_candidates: int = 2**15):
     """Domain samples whose rays get through ``lens`` (exact traces with the events recorded).
 
     Returns ``(variables, traces, region)``: at least ``needed`` rays where that takes at most
@@ -194,7 +224,8 @@ def fit_samples(lens: Lens, path, domain: PathDomain, needed: int, seed: int, ma
     found so far, which each batch extends.
     """
     rng = np.random.default_rng(seed)
-    chunk = 16384
+    chunk = 8192
+    max_candidates = max(max_candidates, chunk)
     kept_variables, kept_traces, candidates = [], [], 0
     hit = np.zeros(_REGION_GRID, bool)
     variables = sample_variables(chunk, rng)
