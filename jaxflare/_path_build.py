@@ -20,7 +20,7 @@ import numpy as np
 
 from ._io import write_bytes_atomic
 from ._lens import Lens
-from ._path_domain import DEFAULT_WAVELENGTH_RANGE_NM, PathDomain, as_float64, make_domain, sample_variables
+from ._path_domain import DEFAULT_WAVELENGTH_RANGE_NM, PathDomain, as_float64, half_field_of_view_deg, make_domain, sample_variables
 from ._path_fit import build_polynomial, sample_region
 from ._path_system import PathSystem, PathSystemReport
 from ._path_validate import validate
@@ -183,6 +183,8 @@ def path_systems(lens: Lens, paths: Sequence[GhostPath | None] | None = None, **
     from ._trace import ghost_paths
 
     paths = ghost_paths(lens) if paths is None else list(paths)
+    if options.get("max_field_angle_deg") is None:  # trace the field of view once, not once per path
+        options["max_field_angle_deg"] = half_field_of_view_deg(lens)
     return {path: path_system(lens, path, **options) for path in paths}
 
 

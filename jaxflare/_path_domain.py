@@ -19,7 +19,7 @@ import numpy as np
 from jaxtyping import Array
 
 from ._lens import Lens
-from ._trace import _surface_sag_slope, _trace_events, path_events
+from ._trace import _surface_sag_slope, trace
 
 DEFAULT_WAVELENGTH_RANGE_NM = (380.0, 780.0)
 TRUST_GRID = (5, 5, 5, 5, 2)
@@ -70,6 +70,12 @@ def front_rim_sag_mm(lens: Lens) -> float:
     return float(sag)
 
 
+def entrance_plane_z_mm(lens: Lens) -> float:
+    """z of the entrance plane: 1 mm in front of the front lens's vertex or rim, whichever is
+    further forward."""
+    return min(0.0, front_rim_sag_mm(lens)) - 1.0
+
+
 def make_domain(
     lens: Lens,
     max_field_angle_deg: float | None = None,
@@ -85,7 +91,7 @@ def make_domain(
     if not 200 <= low < high <= 2500:
         raise ValueError(f"wavelength_range_nm must be (low, high) with 200 <= low < high <= 2500 nm, got {wavelength_range_nm}")
     sag = front_rim_sag_mm(lens)
-    entrance_z = min(0.0, sag) - 1.0
+    entrance_z = entrance_plane_z_mm(lens)
     reach = max(0.0, sag) - entrance_z  # axial distance from the entrance plane to the front rim
     radius = float(lens.semi_aperture_mm[0]) + reach * math.tan(math.radians(max_field_angle_deg))
     return PathDomain(float(max_field_angle_deg), entrance_z, radius, low, high)
@@ -102,7 +108,7 @@ def half_field_of_view_deg(lens: Lens, wavelength_nm: float = 587.56) -> float:
     half_diagonal = 0.5 * math.hypot(p.sensor_width_mm, p.sensor_height_mm)
     angles = np.linspace(0.0, 88.0, 177)
     fan = 97
-    entrance_z = min(0.0, front_rim_sag_mm(lens)) - 1.0
+    entrance_z = entrance_plane_z_mm(lens)
     radius = float(lens.semi_aperture_mm[0])
     with jax.enable_x64(True):
         heights = np.linspace(-1.0, 1.0, fan) * radius
@@ -115,10 +121,7 @@ def half_field_of_view_deg(lens: Lens, wavelength_nm: float = 587.56) -> float:
         z_pupil, _ = lens64.entrance_pupil(wavelength_nm)
         shift = -(z_pupil - entrance_z) * np.tan(np.radians(np.repeat(angles, fan)))
         origins[:, 1] += shift
-        result = _trace_events(
-            lens64, jnp.asarray(origins), jnp.asarray(directions), jnp.full(len(origins), wavelength_nm),
-            jnp.asarray(path_events(lens64, None)), 1,
-        )
+        result = trace(lens64, origins, directions, wavelength_nm)
         valid = np.asarray(result.valid).reshape(len(angles), fan)
         sensor_y = np.asarray(result.positions[:, 1]).reshape(len(angles), fan)
         stop_r = np.hypot(*np.asarray(result.stop_positions[:, 0, :2]).T).reshape(len(angles), fan)
@@ -151,7 +154,8 @@ def as_float64(lens: Lens) -> Lens:
 
 
 def entrance_variables(domain: PathDomain, origins: Array, directions: Array, wavelength_nm: Array):
-    """Normalised variables (u, v, s, t, w), unit directions and the crossing radius on the plane."""
+    """Normalised variables (u, v, s, t, w) of each ray, and whether it travels towards the lens
+    (only those have a meaningful crossing of the entrance plane)."""
     directions = directions / jnp.linalg.norm(directions, axis=-1, keepdims=True)
     dz = directions[:, 2]
     forward = dz > 1e-6

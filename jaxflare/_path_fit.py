@@ -17,10 +17,10 @@ import numpy as np
 from jaxtyping import Array
 
 from ._lens import Lens
-from ._path_domain import TRUST_GRID, PathDomain, cell_index, rays_from_variables, sample_variables
+from ._path_domain import TRUST_GRID, PathDomain, rays_from_variables, sample_variables
 from ._path_system import AUXILIARY_DEGREE, PathSystem, precise_columns
 from ._polybasis import monomials
-from ._trace import TraceResult, _stop_pass_count, _trace_events, path_events
+from ._trace import TraceResult, _stop_pass_count, path_events, trace
 
 _APERTURE_MARGIN = 1.03
 """Clear apertures are widened by this factor for the fit samples, so each polynomial is also
@@ -42,18 +42,13 @@ def widened_lens(lens: Lens) -> Lens:
 
 
 def trace_samples(lens: Lens, path, domain: PathDomain, variables: np.ndarray, record_events: bool = False) -> TraceResult:
-    origins, directions, wavelength = rays_from_variables(domain, variables)
-    events = path_events(lens, path)
-    return _trace_events(
-        lens, jnp.asarray(origins), jnp.asarray(directions), jnp.asarray(wavelength), jnp.asarray(events),
-        _stop_pass_count(events, lens.stop_index), record_events,
-    )
+    """Exact traces of the rays of domain samples ``variables``."""
+    return trace(lens, *rays_from_variables(domain, variables), path, record_events=record_events)
 
 
-def _choose_clip_events(lens: Lens, path, wide: TraceResult, max_clip_events: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
-    """Greedy choice of the event rows (not the stop) whose real clear aperture clips the most
-    widened-lens rays not already clipped by the iris or a chosen event."""
-    events = path_events(lens, path)
+def _choose_clip_events(lens: Lens, events: np.ndarray, wide: TraceResult, max_clip_events: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """Greedy choice of the event rows (not the stop) of the path's ``events`` whose real clear
+    aperture clips the most widened-lens rays not already clipped by the iris or a chosen event."""
     semi = np.asarray(lens.semi_aperture_mm, np.float64)
     positions = np.asarray(wide.event_positions)  # (E, N, 3)
     valid = np.asarray(wide.valid)
@@ -155,7 +150,7 @@ def _fit_columns_jit(wide: TraceResult, variables, exponents_key, clip_rows, cli
     else:
         support = support.at[:, auxiliary].set(support[:, auxiliary] & jnp.asarray(totals <= AUXILIARY_DEGREE)[:, None])
         coefficients = _weighted_least_squares(design, targets, weights, support)
-    lower = np.flatnonzero(exponents.sum(axis=1) < exponents.sum(axis=1).max())
+    lower = np.flatnonzero(totals < totals.max())
     lower_support = None if support is None else support[lower][:, :2]
     lower_fit = _weighted_least_squares(design[:, lower], targets[:, :2], weights, lower_support)
     estimator = coefficients[:, :2].at[lower].add(-lower_fit)
@@ -261,11 +256,13 @@ def _concatenate_rays(parts: Sequence[TraceResult]) -> TraceResult:
     )
 
 
-def structure_arrays(lens: Lens, path, clip_surfaces: Sequence[int], slots: int) -> dict:
+def structure_arrays(events: np.ndarray, clip_surfaces: Sequence[int], slots: int) -> dict:
+    """The path's event table and its clear-aperture test slots (``slots`` of them, the unused
+    ones inactive), as the arrays a :class:`PathSystem` holds."""
     index = np.zeros(slots, np.int32)
     index[: len(clip_surfaces)] = clip_surfaces
     return dict(
-        events=jnp.asarray(path_events(lens, path)), clip_surface_index=jnp.asarray(index),
+        events=jnp.asarray(events), clip_surface_index=jnp.asarray(index),
         clip_active=jnp.asarray(np.arange(slots) < len(clip_surfaces)),
     )
 
@@ -276,7 +273,7 @@ def build_polynomial(lens, path, domain, exponents, construction, sparse_terms, 
     events = path_events(lens, path)
     num_passes = _stop_pass_count(events, lens.stop_index)
     variables, wide, region = fit_samples(widened_lens(lens), path, domain, fit_rays, seed)
-    clip_rows, clip_surfaces = _choose_clip_events(lens, path, wide, max_clip_events)
+    clip_rows, clip_surfaces = _choose_clip_events(lens, events, wide, max_clip_events)
     if construction == "fit":
         coefficients, estimator = _fit_columns(wide, variables, exponents, clip_rows, max_clip_events)
         if sparse_terms is not None and sparse_terms < len(exponents):
@@ -319,7 +316,7 @@ def build_polynomial(lens, path, domain, exponents, construction, sparse_terms, 
         lens=lens, coefficients=coefficients, trust_table=jnp.ones(TRUST_GRID, bool), path=path,
         fit_variables=jnp.asarray(variables), path_blocked=jnp.asarray(len(variables) == 0),
         error_estimator=estimator, estimate_limit_mm=jnp.asarray(tolerance_mm),
-        **structure_arrays(lens, path, clip_surfaces, max_clip_events),
+        **structure_arrays(events, clip_surfaces, max_clip_events),
         degree=int(exponents.max(initial=0)), construction=construction, exponents=tuple(map(tuple, np.asarray(exponents).tolist())),
         domain=domain, num_stop_passes=num_passes, clip_event_rows=clip_rows, clip_surfaces=clip_surfaces,
         report=None, fallback="none",

@@ -152,10 +152,14 @@ class PathSystem(eqx.Module):
 
     def polynomial(self, origins: ArrayLike, directions: ArrayLike, wavelength_nm: ArrayLike = 587.56) -> TraceResult:
         """The polynomial alone, without the exact fallback: untrusted rays come back invalid."""
-        return dataclasses.replace(self, fallback="none")(origins, directions, wavelength_nm)
+        return evaluate(self.kernel(fallback="none"), *ray_arguments(origins, directions, wavelength_nm))
 
 
 class PathKernel(eqx.Module):
+    """The part of a :class:`PathSystem` that evaluation reads. It leaves out the path, the report
+    and other metadata, so that every path of a lens with the same degree and number of stop
+    passes has the same structure and shares one compiled evaluator."""
+
     lens: Lens
     coefficients: Float[Array, "M O"]
     trust_table: Bool[Array, "a b c d e"]
