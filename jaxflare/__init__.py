@@ -1,8 +1,9 @@
 """jaxflare: differentiable, physically based lens-flare simulation in JAX.
 
 Public API: :func:`load_lens`, :class:`Lens`, :func:`trace`, :func:`ghost_paths`, polynomial
-path systems (:func:`path_system`, :class:`PathSystem`), the glass
-catalog (:func:`find_glass`, :func:`model_glass`) and the lens file readers and writers.
+path systems (:func:`path_system`, :class:`PathSystem`), flare rendering (:func:`render`,
+:class:`Scene`, :func:`load_scene`), the glass catalog (:func:`find_glass`, :func:`model_glass`),
+coating presets and the lens file readers and writers.
 """
 
 from ._glass import Glass, UnknownGlassError, find_glass, model_glass, nearest_glass
@@ -22,10 +23,29 @@ from ._path_domain import PathDomain, half_field_of_view_deg, make_domain
 from ._path_fit import refit
 from ._path_system import PathSystem, PathSystemReport
 from ._trace import TraceResult, ghost_paths, path_events, path_fresnel_factor, trace
+from ._coatings import COATING_PRESETS, with_coating, with_coating_layers
+from ._scene import Camera, Light, RenderSettings, Scene, SceneError, SurfaceCoating, load_scene
+from ._render import QUALITY_LEVELS, RenderResult, render
+from ._exr import read_exr, write_exr
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "COATING_PRESETS",
+    "QUALITY_LEVELS",
+    "Camera",
+    "Light",
+    "RenderResult",
+    "RenderSettings",
+    "Scene",
+    "SceneError",
+    "SurfaceCoating",
+    "load_scene",
+    "read_exr",
+    "render",
+    "with_coating",
+    "with_coating_layers",
+    "write_exr",
     "CoatingLayerSpec",
     "CoatingSpec",
     "Glass",

@@ -221,6 +221,113 @@ class Lens(eqx.Module):
             aperture_rotation_rad=self.aperture_rotation_rad,
         )
 
+    def at_focal_length(self, focal_length_mm: float) -> "Lens":
+        """The same lens zoomed to a paraxial effective focal length of ``focal_length_mm`` (d line).
+
+        A zoom position ``k`` is the value ``u = k`` of a zoom parameter ``u`` in
+        ``[0, num_zoom_positions - 1]``; between neighbouring positions every axial gap between
+        surfaces (the zoom gaps) is interpolated linearly in ``u``, and ``u`` is solved by
+        bisection on the EFL (float64, in the meridian of the prescription's stated focal
+        lengths) to 1e-12 relative. At a zoom position's own EFL (within 1e-9 relative) the
+        result is :meth:`at_zoom` of that position.
+
+        As with :meth:`at_zoom`, the iris keeps its blades and rotation, its widest opening is
+        limited to the stated f-number at the new focal length, and the sensor sits at the end of
+        the last gap. If that gap changes with zoom (the prescription puts the sensor at each
+        position's back focus), it is set to the paraxial back focal distance at ``u`` plus the
+        prescription's small offset from it, interpolated linearly: linearly interpolated group
+        spacings are not parfocal, and interpolating the last gap itself would leave the image
+        defocused by millimetres between positions. A fixed last gap stays fixed.
+        ``zoom_position`` of the result is the nearest zoom position.
+
+        A prime lens (one zoom position) is returned unchanged if ``focal_length_mm`` is within
+        1 % of its EFL. Raises ``ValueError`` outside the zoom range (or for a prime lens beyond 1 %).
+        """
+        target = float(focal_length_mm)
+        if not (math.isfinite(target) and target > 0):
+            raise ValueError(f"focal_length_mm must be a finite number > 0, got {focal_length_mm!r}")
+        prescription = self.prescription
+        plane = prescription.stated_focal_length_plane if prescription.stated_focal_length_plane in ("x", "y") else "y"
+        count = prescription.num_zoom_positions
+        if count <= 1:
+            efl = abs(self.focal_length(plane=plane))
+            if abs(target - efl) <= 0.01 * efl:
+                return self
+            raise ValueError(
+                f"'{self.name}' has a fixed EFL of {efl:.4g} mm and {target:g} mm was requested: "
+                "a prime lens cannot change focal length (only requests within 1 % of its EFL are accepted)"
+            )
+
+        table = np.array([s.thicknesses_mm for s in prescription.surfaces], dtype=np.float64)  # (S, zoom positions)
+        powers, n = self._powers(D_LINE_NM, plane)
+
+        def thickness_at(u: float) -> np.ndarray:
+            k = min(math.floor(u), count - 2)
+            fraction = u - k
+            if fraction == 0.0:
+                return table[:, k].copy()
+            if fraction == 1.0:
+                return table[:, k + 1].copy()
+            mixed = (1.0 - fraction) * table[:, k] + fraction * table[:, k + 1]
+            return np.where(table[:, k] == table[:, k + 1], table[:, k], mixed)  # fixed gaps stay bit-exact
+
+        def efl_at(u: float) -> float:
+            system = _paraxial.system_matrix(powers, thickness_at(u), n, 0, self.num_surfaces - 1)
+            return abs(_paraxial.effective_focal_length(system))
+
+        nodes = [efl_at(float(k)) for k in range(count)]
+        shortest, longest = min(nodes), max(nodes)
+        if not shortest * (1.0 - 1e-9) <= target <= longest * (1.0 + 1e-9):
+            raise ValueError(
+                f"{target:g} mm is outside the zoom range of '{self.name}': "
+                f"{shortest:.4g} mm to {longest:.4g} mm (paraxial EFL at its {count} zoom positions)"
+            )
+        for k, efl in enumerate(nodes):
+            if abs(efl - target) <= 1e-9 * efl:
+                return self.at_zoom(k)
+
+        u = math.nan
+        for k in range(count - 1):
+            a, b = nodes[k], nodes[k + 1]
+            if min(a, b) <= target <= max(a, b):
+                low, high, sign_low = float(k), float(k + 1), math.copysign(1.0, a - target)
+                for _ in range(200):
+                    u = 0.5 * (low + high)
+                    error = efl_at(u) - target
+                    if abs(error) <= 1e-12 * target or high - low <= 1e-15:
+                        break
+                    if math.copysign(1.0, error) == sign_low:
+                        low = u
+                    else:
+                        high = u
+                break
+
+        thickness = thickness_at(u)
+        if u != round(u) and np.any(table[-1] != table[-1, 0]):
+
+            def back_focus_at(position: float) -> float:
+                system = _paraxial.system_matrix(powers, thickness_at(position), n, 0, self.num_surfaces - 1)
+                return _paraxial.back_focal_distance(system)
+
+            k = min(math.floor(u), count - 2)
+            offsets = [table[-1, j] - back_focus_at(float(j)) for j in (k, k + 1)]
+            thickness[-1] = back_focus_at(u) + (k + 1 - u) * offsets[0] + (u - k) * offsets[1]
+        fixed = dataclasses.replace(
+            prescription,
+            surfaces=tuple(dataclasses.replace(s, thicknesses_mm=(float(t),)) for s, t in zip(prescription.surfaces, thickness)),
+            stated_focal_lengths_mm=(),
+        )
+        lens = build_lens(fixed, 0)
+        where = f"at {target:g} mm (zoom parameter {u:.4f}):"
+        return dataclasses.replace(
+            lens,
+            prescription=prescription,
+            zoom_position=round(u),
+            notes=tuple(note.replace("at zoom position 0:", where) for note in lens.notes),
+            aperture_blades=self.aperture_blades,
+            aperture_rotation_rad=self.aperture_rotation_rad,
+        )
+
     def describe(self) -> str:
         """A short multi-line summary (name, source, EFL, f-number, interfaces, ghost paths)."""
         efl_y = self.focal_length()

@@ -4,7 +4,8 @@
     jaxflare lens info NAME [--zoom K]      one lens: data, surfaces, ghost paths ranked by strength
     jaxflare lens plot NAME -o OUT.png      cross-section with primary rays and a ghost path
     jaxflare lens convert IN OUT            between the jaxflare TOML format and Zemax .zmx
-    jaxflare demo [--out DIR]               the demo: lens table and a cross-section plot
+    jaxflare render SCENE.toml -o OUT.exr   render a scene's flares to a multi-layer EXR (--png: preview)
+    jaxflare demo [--out DIR]               the demo: lens table, cross-section, demo scene render
 """
 
 from __future__ import annotations
@@ -78,6 +79,7 @@ def _lens_info(name: str, zoom: int, top: int) -> str:
 def _demo(out_dir: str) -> int:
     from ._load import bundled_lens_names
     from ._plot import save_cross_section
+    from ._scene import demo_scene_path
 
     names = bundled_lens_names()
     print("Bundled lenses:")
@@ -85,6 +87,33 @@ def _demo(out_dir: str) -> int:
     lens = _load("zeiss_biotar" if "zeiss_biotar" in names else names[0])
     png = save_cross_section(lens, os.path.join(out_dir, "cross_section.png"))
     print(f"\nwrote {os.path.abspath(png)}")
+    print(f"\nRendering the demo scene {demo_scene_path()}")
+    return _render(demo_scene_path(), os.path.join(out_dir, "demo.exr"), None, 0, True, None, None)
+
+
+def _render(scene_path: str, output: str, quality, seed: int, png: bool, samples, method) -> int:
+    from ._render import render
+
+    if not output.lower().endswith(".exr"):
+        raise ValueError(f"-o/--output must end in .exr, got {output!r}")
+    result = render(scene_path, quality=quality, seed=seed, samples=samples, method=method, progress=True)
+    exr = result.write_exr(output)
+    stats = result.statistics
+    print(f"wrote {os.path.abspath(exr)}")
+    if png:
+        preview = result.write_png(os.path.splitext(output)[0] + ".png")
+        print(f"wrote {os.path.abspath(preview)}")
+    own = [layer["layer"] for layer in stats["layers"]]
+    print(
+        f"{stats['lens']}: {stats['samples']:,} samples ({stats['samples_per_path']:,} per path, "
+        f"{stats['paths_rendered']} paths: {stats['polynomial_paths']} polynomial, {stats['exact_paths']} exact); "
+        f"sensor hit rate {100 * stats['sensor_hit_rate']:.1f} % of flare samples"
+    )
+    print(f"layers: {', '.join(own)}")
+    print(
+        f"time: {stats['total_seconds']:.1f} s (set-up {stats['setup_seconds']:.1f} s, "
+        f"first batch incl. compile {stats['compile_seconds']:.1f} s, render {stats['render_seconds']:.1f} s)"
+    )
     return 0
 
 
@@ -106,6 +135,15 @@ def build_parser() -> argparse.ArgumentParser:
     convert = lens.add_parser("convert", help="convert between .toml and .zmx")
     convert.add_argument("source")
     convert.add_argument("target")
+
+    render = commands.add_parser("render", help="render a scene's flares to a multi-layer OpenEXR")
+    render.add_argument("scene", help="scene TOML file (format: jaxflare/scenes/FORMAT.md), or 'demo'")
+    render.add_argument("-o", "--output", required=True, help="output .exr path")
+    render.add_argument("--quality", choices=["preview", "production"], default=None, help="default: the scene's [render] quality")
+    render.add_argument("--seed", type=int, default=0, help="random seed (default 0); the same seed gives the same image")
+    render.add_argument("--png", action="store_true", help="also write a tone-mapped PNG preview beside the EXR")
+    render.add_argument("--samples", type=int, default=None, help="total Monte Carlo samples (default: the quality's)")
+    render.add_argument("--method", choices=["auto", "polynomial", "exact"], default=None, help="path evaluation (default: the scene's)")
 
     demo = commands.add_parser("demo", help="run the demo")
     demo.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
@@ -131,6 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "demo":
             return _demo(args.out)
+        if args.command == "render":
+            return _render(args.scene, args.output, args.quality, args.seed, args.png, args.samples, args.method)
         if args.lens_command == "list":
             from ._load import bundled_lens_names
 
