@@ -62,9 +62,9 @@ def _vector(where: str, value: Any, length: int = 3, *, non_negative: bool = Fal
 
 
 def _choice(where: str, value: Any, choices: Sequence[str]) -> str:
-    if not isinstance(value, str) or value.lower() not in [c.lower() for c in choices]:
-        _fail(where, f"must be one of {', '.join(repr(c) for c in choices)}, got {value!r}")
-    return next(c for c in choices if c.lower() == value.lower())
+    if not isinstance(value, str) or value not in choices:
+        _fail(where, f"must be one of {', '.join(repr(c) for c in choices)} (as written), got {value!r}")
+    return value
 
 
 def _integer(where: str, value: Any, minimum: int | None = None) -> int:
