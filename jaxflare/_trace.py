@@ -213,6 +213,8 @@ TRACE_COMPILATIONS = [0]
 def _trace_events(
     lens: Lens, origins: Array, directions: Array, wavelength_nm: Array, events: Array, num_stop_passes: int, record_events: bool = False
 ) -> TraceResult:
+    """Trace rays along the event table ``events``: (E, 4) for one path shared by every ray, or
+    (N, E, 4) for a path per ray (a renderer batch that mixes paths)."""
     TRACE_COMPILATIONS[0] += 1
     num_rays = origins.shape[0]
     vertex_z = jnp.concatenate([jnp.zeros(1, lens.thickness_mm.dtype), jnp.cumsum(lens.thickness_mm[:-1])])
@@ -220,9 +222,14 @@ def _trace_events(
     directions = directions / jnp.linalg.norm(directions, axis=-1, keepdims=True)
     dtype = origins.dtype
 
+    per_ray = events.ndim == 3  # (N, E, 4): every ray follows its own path
+
+    def column(table, surface):  # table[:, surface] for one surface or one per ray
+        return jnp.take_along_axis(table, surface[:, None], 1)[:, 0] if per_ray else table[:, surface]
+
     def apply_event(state, event):
         position, direction, valid, throughput, lost_at, stop_positions, stop_pass = state
-        surface, travel, action = event[0], event[1], event[2]
+        surface, travel, action = event[..., 0], event[..., 1], event[..., 2]
         point, normal, hit = _intersect(
             position, direction, vertex_z[surface], lens.curvature_per_mm[surface], lens.conic[surface],
             lens.aspheric_coefficients[surface], lens.surface_kind[surface], lens.has_aspheres,
@@ -233,26 +240,27 @@ def _trace_events(
         inside = jnp.where(is_stop, inside_clear & inside_iris, inside_clear)
 
         forward = travel > 0
-        n_before = jnp.where(forward, indices[:, surface], indices[:, surface + 1])
-        n_after = jnp.where(forward, indices[:, surface + 1], indices[:, surface])
+        n_before = jnp.where(forward, column(indices, surface), column(indices, surface + 1))
+        n_after = jnp.where(forward, column(indices, surface + 1), column(indices, surface))
         cos_in = -jnp.sum(normal * direction, axis=-1)
         facing = jnp.where(cos_in < 0, -1.0, 1.0)
         normal = normal * facing[:, None]
         cos_in = jnp.clip(cos_in * facing, 0.0, 1.0)
 
         reflect = action == 1
+        reflect_xyz = reflect[..., None]
         eta = n_before / n_after
         k = 1.0 - eta**2 * (1.0 - cos_in**2)
         refracted = eta[:, None] * direction + (eta * cos_in - _safe_sqrt(k))[:, None] * normal
         reflected = direction + 2.0 * cos_in[:, None] * normal
-        new_direction = jnp.where(reflect, reflected, refracted)
+        new_direction = jnp.where(reflect_xyz, reflected, refracted)
         new_direction = new_direction / jnp.linalg.norm(new_direction, axis=-1, keepdims=True)
         total_internal = (~reflect) & (k < 0)
 
         layers_n = lens.coating_indices[surface]
         layers_d = lens.coating_thicknesses_nm[surface]
-        layers_n = jnp.where(forward, layers_n, layers_n[::-1])
-        layers_d = jnp.where(forward, layers_d, layers_d[::-1])
+        layers_n = jnp.where(forward[..., None], layers_n, layers_n[..., ::-1])
+        layers_d = jnp.where(forward[..., None], layers_d, layers_d[..., ::-1])
         reflectance = coated_reflectance(n_before, n_after, cos_in, wavelength_nm, layers_n, layers_d)
         factor = jnp.where(reflect, reflectance, 1.0 - reflectance)
 
@@ -264,15 +272,19 @@ def _trace_events(
         throughput = jnp.where(update, throughput * factor, throughput)
         lost_at = jnp.where(newly_lost, surface, lost_at)
         valid = valid & ok
-        record = is_stop
-        slot = jax.nn.one_hot(stop_pass, stop_positions.shape[1], dtype=dtype)
-        stop_positions = jnp.where(record, stop_positions + slot[None, :, None] * point[:, None, :], stop_positions)
+        record = jnp.broadcast_to(is_stop, stop_pass.shape)
+        slot = jax.nn.one_hot(stop_pass, stop_positions.shape[1], dtype=dtype)  # (N, P)
+        stop_positions = jnp.where(record[:, None, None], stop_positions + slot[:, :, None] * point[:, None, :], stop_positions)
         stop_pass = stop_pass + jnp.where(record, 1, 0)
         return position, direction, valid, throughput, lost_at, stop_positions, stop_pass
 
     def step(state, event):
-        # padded (inactive) events are skipped at run time; cond stays reverse-differentiable
-        state = jax.lax.cond(event[3] == 1, apply_event, lambda state, _: state, state, event)
+        if per_ray:  # each ray skips its own padded events
+            new = apply_event(state, event)
+            active = event[:, 3] == 1
+            state = jax.tree.map(lambda n, o: jnp.where(active.reshape(active.shape + (1,) * (n.ndim - 1)), n, o), new, state)
+        else:  # padded (inactive) events are skipped at run time; cond stays reverse-differentiable
+            state = jax.lax.cond(event[3] == 1, apply_event, lambda state, _: state, state, event)
         return state, (state[0] if record_events else None)
 
     state = (
@@ -282,9 +294,10 @@ def _trace_events(
         jnp.ones(num_rays, dtype),
         jnp.full(num_rays, -1, jnp.int32),
         jnp.zeros((num_rays, max(num_stop_passes, 1), 3), dtype),
-        jnp.asarray(0, jnp.int32),
+        jnp.zeros(num_rays, jnp.int32),
     )
-    (position, direction, valid, throughput, lost_at, stop_positions, _), history = jax.lax.scan(step, state, events)
+    scanned = jnp.swapaxes(events, 0, 1) if per_ray else events
+    (position, direction, valid, throughput, lost_at, stop_positions, _), history = jax.lax.scan(step, state, scanned)
 
     # propagate to the sensor plane
     dz = direction[:, 2]

@@ -367,3 +367,29 @@ def test_a_surface_behind_the_ray_is_a_miss_not_a_backward_step():
     result = jaxflare.trace(lens, *_parallel_rays(np.array([2.0, 4.0, 5.0, 7.0])), D_LINE)
     np.testing.assert_array_equal(np.asarray(result.valid), [True, True, False, False])
     np.testing.assert_array_equal(np.asarray(result.lost_at_surface), [-1, -1, 1, 1])
+
+
+def test_per_ray_event_tables_match_one_path_at_a_time(biotar):
+    """A batch in which every ray follows its own path (the renderer's adaptive batches) traces
+    each ray exactly as a batch of that path alone does."""
+    import numpy as np
+
+    from jaxflare._trace import _trace_events
+
+    paths = [None, (5, 0), (7, 4), (9, 7), (4, 2)]
+    rng = np.random.default_rng(3)
+    count = 400
+    origins = np.concatenate([rng.uniform(-20, 20, (count, 2)), np.full((count, 1), -5.0)], axis=1)
+    directions = np.concatenate([rng.normal(0, 0.05, (count, 2)), np.ones((count, 1))], axis=1)
+    wavelength = rng.uniform(400, 700, count)
+    which = rng.integers(0, len(paths), count)
+    tables = np.stack([jaxflare.path_events(biotar, p) for p in paths])
+    mixed = _trace_events(biotar, jnp.asarray(origins), jnp.asarray(directions), jnp.asarray(wavelength), jnp.asarray(tables[which]), 3)
+    for k, path in enumerate(paths):
+        rows = which == k
+        alone = jaxflare.trace(biotar, origins[rows], directions[rows], wavelength[rows], path)
+        np.testing.assert_array_equal(np.asarray(mixed.valid)[rows], np.asarray(alone.valid))
+        np.testing.assert_allclose(np.asarray(mixed.positions)[rows], np.asarray(alone.positions), atol=1e-9)
+        np.testing.assert_allclose(np.asarray(mixed.throughput)[rows], np.asarray(alone.throughput), rtol=1e-12, atol=1e-15)
+        passes = alone.stop_positions.shape[1]
+        np.testing.assert_allclose(np.asarray(mixed.stop_positions)[rows][:, :passes], np.asarray(alone.stop_positions), atol=1e-9)
