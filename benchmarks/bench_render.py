@@ -43,7 +43,7 @@ Production: sigma^2 = sigma^2_eighth x (drawn eighth samples / drawn production 
 sigma^2 = ||P - mean of eighths||^2 - sigma^2_eighth / 2.
 
 ``--quick``: the same code at 320x180 (preview, 2^18 samples) and 480x270 (production, 2^20),
-convergence 2^16 ... 2^18, ``method="auto"`` on the 4 most energetic ghost paths only; it writes
+convergence 2^16 ... 2^18, ``method="auto"`` on the 2 most energetic ghost paths only; it writes
 into a new temporary folder (printed) unless ``--out`` is given, never into ``benchmarks/results``.
 
 Outputs (atomic writes) under ``benchmarks/results/``: ``render_times.{csv,json}``,
@@ -77,9 +77,9 @@ for _p in (str(REPO), str(HERE)):
     if _p not in sys.path:
         sys.path.insert(0, _p)
 
-from bench_trace import _finite_or_null, _json_default, load_average, machine_info, machine_string  # noqa: E402
+from bench_trace import _finite_or_null, _json_default, load_average, machine_info, machine_string
 
-from jaxflare._io import write_bytes_atomic  # noqa: E402
+from jaxflare._io import write_bytes_atomic
 
 DEFAULT_OUT = HERE / "results"
 STEM = "render_times"
@@ -95,7 +95,7 @@ FULL = {
     "warmup_samples": 2**16, "auto_paths": None, "reference": True, "production_full": True, "auto": True,
 }
 QUICK = dict(FULL, preview_resolution=(320, 180), production_resolution=(480, 270), preview_samples=2**18,
-             production_samples=2**20, convergence_samples=[2**16, 2**17, 2**18], auto_paths=4)
+             production_samples=2**20, convergence_samples=[2**16, 2**17, 2**18], auto_paths=2)
 
 CSV_FIELDS = [
     "case", "resolution", "quality", "method", "samples", "samples_requested", "renders", "seeds", "median_seconds",
@@ -224,7 +224,8 @@ class RenderBench:
         cfg = self.cfg
         self.log(f"\n-- preview {self.res(self.scene_preview)}: {self.preview_n} samples, method exact, seeds {cfg['seeds']}")
         for seed in cfg["seeds"]:
-            record, flare, result = self.render(self.scene_preview, f"preview seed {seed}", quality="preview", seed=seed, method="exact")
+            record, flare, result = self.render(self.scene_preview, f"preview seed {seed}", quality="preview", samples=self.preview_n,
+                                                seed=seed, method="exact")
             self.preview_records.append(record)
             self.preview_images.append(flare)
             if seed == cfg["seeds"][0]:
@@ -313,7 +314,7 @@ class RenderBench:
         if cfg["production_full"]:
             self.log(f"   full production render, seed {cfg['production_seed']} (the 15 min budget):")
             full_record, full, result = self.render(scene, f"production seed {cfg['production_seed']}", quality="production",
-                                                    seed=cfg["production_seed"], method="exact")
+                                                    samples=self.production_n, seed=cfg["production_seed"], method="exact")
             del result
             full_samples = full_record["samples"]
         else:
@@ -385,8 +386,8 @@ class RenderBench:
         try:
             out = {}
             for state in ("cold", "warm"):
-                record, flare, _ = self.render(self.scene_preview, f"auto ({state} path cache)", quality="preview", seed=0,
-                                               method="auto", paths=paths)
+                record, flare, _ = self.render(self.scene_preview, f"auto ({state} path cache)", quality="preview",
+                                               samples=self.preview_n, seed=0, method="auto", paths=paths)
                 difference = float("nan")
                 if paths is None and self.preview_images and cfg["seeds"][0] == 0:
                     exact = np.asarray(self.preview_images[0], np.float64)
@@ -449,7 +450,8 @@ def _csv_bytes(rows: list[dict]) -> bytes:
     writer = csv.DictWriter(buffer, fieldnames=CSV_FIELDS, lineterminator="\n")
     writer.writeheader()
     for r in rows:
-        writer.writerow({k: (f"{r[k]:.6g}" if isinstance(r.get(k), float) else r.get(k)) for k in CSV_FIELDS})
+        writer.writerow({k: ((f"{r[k]:.6g}" if math.isfinite(r[k]) else "") if isinstance(r.get(k), float) else r.get(k))
+                         for k in CSV_FIELDS})
     return buffer.getvalue().encode()
 
 
@@ -526,12 +528,15 @@ def write_outputs(bench: RenderBench, meta: dict, out_dir: Path, log) -> list[Pa
 
 
 def _fmt(value, spec: str, missing: str = "-") -> str:
-    return format(value, spec) if isinstance(value, (int, float)) and value is not None and math.isfinite(value) else missing
+    if isinstance(value, (int, float)) and math.isfinite(value):
+        return format(value, spec)
+    width = "".join(ch for ch in spec.split(".")[0] if ch.isdigit())
+    return missing.rjust(int(width) if width else 0)
 
 
 def summary_text(bench: RenderBench) -> str:
-    lines = [f"{'case':22s} {'resolution':>10s} {'method':>6s} {'samples':>10s} {'median s':>9s} {'render s':>9s} "
-             f"{'budget s':>8s} {'x budget':>8s} {'rel. RMSE':>9s}  noise estimate"]
+    lines = [(f"{'case':22s} {'resolution':>10s} {'method':>6s} {'samples':>10s} {'median s':>9s} {'render s':>9s} "
+              f"{'budget s':>8s} {'x budget':>8s} {'rel. RMSE':>9s}  noise estimate")]
     for r in bench.rows:
         lines.append(f"{r['case']:22s} {r['resolution']:>10s} {r['method']:>6s} {r['samples']:>10d} {_fmt(r['median_seconds'], '9.2f')} "
                      f"{_fmt(r['render_seconds'], '9.2f')} {_fmt(r['paper_budget_seconds'], '8.0f')} {_fmt(r['budget_ratio'], '8.2f')} "
@@ -562,7 +567,7 @@ def summary_text(bench: RenderBench) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true",
-                        help="smoke test: 320x180 / 480x270, 2^18 / 2^20 samples, auto on 4 paths; writes to a temporary folder")
+                        help="smoke test: 320x180 / 480x270, 2^18 / 2^20 samples, auto on 2 paths; writes to a temporary folder")
     parser.add_argument("--no-production", action="store_true", help="skip the full 2K production render (noise still extrapolated)")
     parser.add_argument("--no-reference", action="store_true", help="skip the 8x-samples reference render")
     parser.add_argument("--no-auto", action="store_true", help="skip the method='auto' renders (path-system build)")

@@ -2,12 +2,18 @@
 
 Usage:  python benchmarks/run_all.py [--quick] [--only NAME ...] [--list] [-- extra args for every benchmark]
 
+Benchmarks (``--only`` takes the name with or without ``bench_``): ``polynomial`` (path-system error
+against throughput), ``render`` (demo-scene render times and noise against the paper's budgets),
+``trace`` (exact-trace throughput against optiland).
+
 Convention for a benchmark module ``benchmarks/bench_<name>.py``:
 
 - it defines ``main(argv: list[str] | None = None) -> int | None`` that parses its own arguments with
   argparse and accepts at least ``--quick`` (a smoke-test run well under a minute);
 - importing it does no work (heavy imports may happen at import time, measurements must not);
-- it writes its results under ``benchmarks/results/`` atomically (temporary file + ``os.replace``);
+- it writes its results under ``benchmarks/results/`` atomically (temporary file + ``os.replace``); with
+  ``--quick`` it must not overwrite the full results (``bench_trace``/``bench_polynomial`` write ``*_quick.*``,
+  ``bench_render`` writes into a new temporary folder and prints where);
 - it returns 0 (or None) on success and a non-zero code on failure.
 
 Benchmarks run in this process one after another, in file-name order; a failure (non-zero return or an
