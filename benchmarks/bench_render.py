@@ -116,7 +116,7 @@ def with_resolution(scene, resolution):
 def render_once(scene, log, label: str, **kwargs):
     """One timed ``jaxflare.render``: (record, flare RGB float32 (H, W, 3), result)."""
     import jaxflare
-    from jaxflare import _render
+    from jaxflare import _render_step as _render
 
     traces = _render.STEP_TRACES[0]
     with warnings.catch_warnings(record=True) as caught:

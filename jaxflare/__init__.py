@@ -24,7 +24,7 @@ from ._path_fit import refit
 from ._path_system import PathSystem, PathSystemReport
 from ._trace import TraceResult, ghost_paths, path_events, path_fresnel_factor, trace
 from ._coatings import COATING_PRESETS, with_coating, with_coating_layers
-from ._scene import Camera, Light, RenderSettings, Scene, SceneError, SurfaceCoating, load_scene
+from ._scene import Camera, Distortion, Geometry, Hood, Light, RenderSettings, Scene, SceneError, SurfaceCoating, load_scene
 from ._render import QUALITY_LEVELS, RenderResult, render
 from ._exr import read_exr, write_exr
 
@@ -34,6 +34,9 @@ __all__ = [
     "COATING_PRESETS",
     "QUALITY_LEVELS",
     "Camera",
+    "Distortion",
+    "Geometry",
+    "Hood",
     "Light",
     "RenderResult",
     "RenderSettings",

@@ -29,6 +29,7 @@ QUALITIES = ("preview", "production")
 METHODS = ("auto", "polynomial", "exact")
 FRESNEL_MODELS = ("schlick", "exact")
 WEIGHTINGS = ("all-samples", "sensor-hits")
+SAMPLINGS = ("adaptive", "uniform")
 EXR_PIXEL_TYPES = ("half", "float")
 EXR_COMPRESSIONS = ("none", "rle", "zips", "zip", "piz", "pxr24", "b44", "b44a", "dwaa", "dwab")
 MAX_LIGHT_FIELD_ANGLE_DEG = 85.0
@@ -109,6 +110,11 @@ class Camera:
     surface_coatings: tuple["SurfaceCoating", ...] = ()
     coating_tints: tuple[tuple[int, tuple[float, float, float]], ...] = ()
     """(interface index, RGB multiplier of its reflectance) pairs."""
+    dirt_map: str | None = None
+    """Image of the dirt on the front element (PNG/TIFF/JPEG/EXR; 1 = clean, 0 = opaque), laid over
+    its clear aperture as seen from behind the camera (``jaxflare._dirt``)."""
+    hood: "Hood | None" = None
+    distortion: "Distortion | None" = None
 
     def world_to_camera(self) -> np.ndarray:
         """3x3 rotation taking world vectors to the lens frame (x right, y up, z towards the sensor)."""
@@ -124,6 +130,43 @@ class Camera:
         rx = np.array([[1, 0, 0], [0, np.cos(pitch), -np.sin(pitch)], [0, np.sin(pitch), np.cos(pitch)]])
         rz = np.array([[np.cos(roll), -np.sin(roll), 0], [np.sin(roll), np.cos(roll), 0], [0, 0, 1]])
         return (ry @ rx @ rz).T  # camera-to-world is Ry Rx Rz; its inverse is the transpose
+
+
+@dataclasses.dataclass(frozen=True)
+class Hood:
+    """A lens hood or matte box: an opening ``distance_mm`` in front of the front lens vertex,
+    circular (``radius_mm``) or rectangular (``half_width_mm`` x ``half_height_mm``, lens frame)."""
+
+    shape: str = "circular"
+    distance_mm: float = 50.0
+    radius_mm: float | None = None
+    half_width_mm: float | None = None
+    half_height_mm: float | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Distortion:
+    """The main render's lens distortion, applied to flare samples in image space so flares line
+    up with their source: Brown-Conrady coefficients (OpenCV convention, normalised by
+    ``focal_length_px``, default the lens's focal length in pixels) or an ST-map file."""
+
+    k1: float = 0.0
+    k2: float = 0.0
+    k3: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    focal_length_px: float | None = None
+    st_map: str | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Geometry:
+    """A mesh (OBJ, PLY, GLB/GLTF, STL) that can block light on its way to the lens: world units
+    times ``scale`` give metres; ``transform`` (4x4, row-major) places it in the world."""
+
+    file: str
+    scale: float = 1.0
+    transform: tuple[tuple[float, ...], ...] | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -191,6 +234,10 @@ class RenderSettings:
     the sensor); ``core``: also render the primary image of each light as layer ``core``;
     ``layer_threshold``: flares whose energy is below this fraction of the brightest go to layer
     ``flares_merged``; at most ``max_flare_layers`` flares get their own layer.
+    ``sampling``: ``"adaptive"`` (the paper's section 3: lights, paths and front-lens cells drawn in
+    proportion to the radiance they carry, learnt from a pilot and updated as the render goes) or
+    ``"uniform"``; ``cull_threshold``: flares whose energy is provably below this fraction of the
+    brightest are not rendered (0 renders every path).
     """
 
     quality: str = "preview"
@@ -204,6 +251,8 @@ class RenderSettings:
     max_flare_layers: int = 12
     exr_pixel_type: str = "half"
     exr_compression: str = "zip"
+    sampling: str = "adaptive"
+    cull_threshold: float = 1e-3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -211,11 +260,14 @@ class Scene:
     camera: Camera
     lights: tuple[Light, ...]
     render: RenderSettings = RenderSettings()
+    geometry: tuple[Geometry, ...] = ()
+    """Meshes that occlude the lights (each sample's light-to-lens segment is ray-cast)."""
     source: str | None = None
     """The file the scene was read from (lens paths in it are relative to its folder)."""
 
     def __post_init__(self):
         object.__setattr__(self, "lights", tuple(self.lights))
+        object.__setattr__(self, "geometry", tuple(self.geometry))
         check_scene(self)
 
 
@@ -284,6 +336,29 @@ def check_camera(camera: Camera, where: str = "camera") -> None:
     for k, (interface, rgb) in enumerate(camera.coating_tints):
         _integer(f"{where}.coating_tints[{k}].interface", interface, minimum=0)
         _vector(f"{where}.coating_tints[{k}].rgb", rgb, non_negative=True)
+    if camera.dirt_map is not None and (not isinstance(camera.dirt_map, str) or not camera.dirt_map):
+        _fail(f"{where}.dirt_map", f"must be a path to an image file, got {camera.dirt_map!r}")
+    if camera.hood is not None:
+        hood = camera.hood
+        if not isinstance(hood, Hood):
+            _fail(f"{where}.hood", f"must be a jaxflare.Hood, got {type(hood).__name__}")
+        shape = _choice(f"{where}.hood.shape", hood.shape, ("circular", "rectangular"))
+        _number(f"{where}.hood.distance_mm", hood.distance_mm, minimum=0.0, exclusive=True)
+        needed = ("radius_mm",) if shape == "circular" else ("half_width_mm", "half_height_mm")
+        for name in needed:
+            if getattr(hood, name) is None:
+                _fail(f"{where}.hood.{name}", f"a {shape} hood needs {' and '.join(needed)}")
+            _number(f"{where}.hood.{name}", getattr(hood, name), minimum=0.0, exclusive=True)
+    if camera.distortion is not None:
+        distortion = camera.distortion
+        if not isinstance(distortion, Distortion):
+            _fail(f"{where}.distortion", f"must be a jaxflare.Distortion, got {type(distortion).__name__}")
+        for name in ("k1", "k2", "k3", "p1", "p2"):
+            _number(f"{where}.distortion.{name}", getattr(distortion, name))
+        if distortion.focal_length_px is not None:
+            _number(f"{where}.distortion.focal_length_px", distortion.focal_length_px, minimum=0.0, exclusive=True)
+        if distortion.st_map is not None and any(getattr(distortion, n) for n in ("k1", "k2", "k3", "p1", "p2")):
+            _fail(f"{where}.distortion", "give Brown-Conrady coefficients or an st_map, not both")
 
 
 def check_light(light: Light, where: str) -> None:
@@ -362,6 +437,10 @@ def check_settings(settings: RenderSettings, where: str = "render") -> None:
     if threshold > 1:
         _fail(f"{where}.layer_threshold", f"is a fraction of the brightest flare and must be <= 1, got {threshold:g}")
     _integer(f"{where}.max_flare_layers", settings.max_flare_layers, minimum=0)
+    _choice(f"{where}.sampling", settings.sampling, SAMPLINGS)
+    cull = _number(f"{where}.cull_threshold", settings.cull_threshold, minimum=0.0)
+    if cull >= 1:
+        _fail(f"{where}.cull_threshold", f"is a fraction of the brightest flare and must be < 1, got {cull:g}")
     _choice(f"{where}.exr_pixel_type", settings.exr_pixel_type, EXR_PIXEL_TYPES)
     _choice(f"{where}.exr_compression", settings.exr_compression, EXR_COMPRESSIONS)
 
@@ -387,6 +466,18 @@ def check_scene(scene: Scene) -> None:
                 f"is {side}: {angle:.1f} degrees from the viewing direction; a flare needs a light within "
                 f"{MAX_LIGHT_FIELD_ANGLE_DEG:g} degrees of it, in front of the lens",
             )
+    for k, mesh in enumerate(scene.geometry):
+        if not isinstance(mesh, Geometry):
+            _fail(f"geometry[{k}]", f"must be a jaxflare.Geometry, got {type(mesh).__name__}")
+        if not isinstance(mesh.file, str) or not mesh.file:
+            _fail(f"geometry[{k}].file", f"must be a path to a mesh file, got {mesh.file!r}")
+        _number(f"geometry[{k}].scale", mesh.scale, minimum=0.0, exclusive=True)
+        if mesh.transform is not None:
+            matrix = np.asarray(mesh.transform, dtype=object)
+            if matrix.shape != (4, 4):
+                _fail(f"geometry[{k}].transform", "must be a 4x4 matrix (4 rows of 4 numbers)")
+            for r in range(4):
+                _vector(f"geometry[{k}].transform[{r}]", mesh.transform[r], 4)
     if not isinstance(scene.render, RenderSettings):
         _fail("render", f"must be a jaxflare.RenderSettings, got {type(scene.render).__name__}")
     check_settings(scene.render)
@@ -424,6 +515,9 @@ _CAMERA_KEYS = {
     "coating": "coating preset for every glass-air interface",
     "surface_coatings": "list of {surfaces = [...], preset = ...} or {surfaces = [...], layers = [[index, nm], ...]}",
     "coating_tints": "list of {interface = k, rgb = [r, g, b]}",
+    "dirt_map": "image of the front-lens dirt (path relative to the scene file)",
+    "hood": "{shape = \"circular\" or \"rectangular\", distance_mm, radius_mm or half_width_mm and half_height_mm}",
+    "distortion": "{k1, k2, k3, p1, p2, focal_length_px} or {st_map = \"file.exr\"}",
 }
 _LIGHT_KEYS = {
     "kind": "one of " + ", ".join(LIGHT_KINDS),
@@ -464,7 +558,7 @@ def scene_from_dict(data: Mapping[str, Any], source: str | None = None) -> Scene
     """Build a :class:`Scene` from parsed TOML (``camera``, ``light`` array, optional ``render``)."""
     prefix = f"{source}: " if source else ""
     try:
-        _check_keys("scene", data, {"camera": "", "light": "", "render": ""})
+        _check_keys("scene", data, {"camera": "", "light": "", "render": "", "geometry": ""})
         if "camera" not in data:
             _fail("camera", "missing: the scene needs a [camera] table with at least lens = \"...\"")
         camera_table = dict(_check_keys("camera", data["camera"], _CAMERA_KEYS))
@@ -490,6 +584,16 @@ def scene_from_dict(data: Mapping[str, Any], source: str | None = None) -> Scene
         for key in ("resolution", "position_m", "look_at_m", "rotation_deg", "up"):
             if key in camera_table:
                 camera_table[key] = _tuple3(camera_table[key])
+        if isinstance(camera_table.get("dirt_map"), str):
+            camera_table["dirt_map"] = _relative(camera_table["dirt_map"], source)
+        if "hood" in camera_table:
+            hood = _check_keys("camera.hood", camera_table["hood"], {f.name: "" for f in dataclasses.fields(Hood)})
+            camera_table["hood"] = Hood(**hood)
+        if "distortion" in camera_table:
+            distortion = dict(_check_keys("camera.distortion", camera_table["distortion"], {f.name: "" for f in dataclasses.fields(Distortion)}))
+            if isinstance(distortion.get("st_map"), str):
+                distortion["st_map"] = _relative(distortion["st_map"], source)
+            camera_table["distortion"] = Distortion(**distortion)
         camera = Camera(**camera_table, surface_coatings=tuple(overrides), coating_tints=tuple(tints))
 
         light_tables = data.get("light", [])
@@ -510,9 +614,29 @@ def scene_from_dict(data: Mapping[str, Any], source: str | None = None) -> Scene
                 table["spectrum"] = (tuple(spectrum["wavelengths_nm"]), tuple(spectrum["values"]))
             lights.append(Light(**table))
         settings = RenderSettings(**_check_keys("render", data.get("render", {}), _RENDER_KEYS))
-        return Scene(camera=camera, lights=tuple(lights), render=settings, source=source)
+        meshes = []
+        tables = data.get("geometry", [])
+        if not isinstance(tables, list):
+            _fail("geometry", "must be an array of tables: write each mesh as [[geometry]]")
+        for k, table in enumerate(tables):
+            table = dict(_check_keys(f"geometry[{k}]", table, {"file": "mesh file (OBJ, PLY, GLB/GLTF, STL)", "scale": "scene units to metres", "transform": "4x4 matrix"}))
+            if "file" not in table:
+                _fail(f"geometry[{k}].file", "missing: name the mesh file")
+            if isinstance(table["file"], str):
+                table["file"] = _relative(table["file"], source)
+            if isinstance(table.get("transform"), list):
+                table["transform"] = tuple(tuple(row) if isinstance(row, list) else row for row in table["transform"])
+            meshes.append(Geometry(**table))
+        return Scene(camera=camera, lights=tuple(lights), render=settings, geometry=tuple(meshes), source=source)
     except SceneError as error:
         raise SceneError(f"{prefix}{error}") from None
+
+
+def _relative(path: str, source: str | None) -> str:
+    """A path from a scene file, relative to that file's folder."""
+    if source and not os.path.isabs(path):
+        return os.path.join(os.path.dirname(os.path.abspath(source)), path)
+    return path
 
 
 def load_scene(path: str | os.PathLike) -> Scene:

@@ -105,8 +105,8 @@ def _render(scene_path: str, output: str, quality, seed: int, png: bool, samples
         print(f"wrote {os.path.abspath(preview)}")
     own = [layer["layer"] for layer in stats["layers"]]
     print(
-        f"{stats['lens']}: {stats['samples']:,} samples ({stats['samples_per_path']:,} per path, "
-        f"{stats['paths_rendered']} paths: {stats['polynomial_paths']} polynomial, {stats['exact_paths']} exact); "
+        f"{stats['lens']}: {stats['samples']:,} samples ({stats['sampling']}), {stats['paths_rendered']} paths "
+        f"({stats['polynomial_paths']} polynomial, {stats['exact_paths']} exact, {stats['culled_paths']} culled); "
         f"sensor hit rate {100 * stats['sensor_hit_rate']:.1f} % of flare samples"
     )
     print(f"layers: {', '.join(own)}")
