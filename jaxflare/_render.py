@@ -82,15 +82,18 @@ class Quality:
 
     samples: int
     wavelength_strata: int
-    degree: int
+    degrees: tuple[int, ...]
+    """Polynomial degrees tried, lowest first: each path gets the lowest that meets the tolerance."""
     tolerance_px: float
     pilot_fraction: float = 1 / 16
 
 
 QUALITY_LEVELS = {
-    "preview": Quality(samples=2**22, wavelength_strata=8, degree=5, tolerance_px=1.0),
-    "production": Quality(samples=2**26, wavelength_strata=32, degree=5, tolerance_px=0.5),
+    "preview": Quality(samples=2**22, wavelength_strata=8, degrees=(3, 5), tolerance_px=1.0),
+    "production": Quality(samples=2**26, wavelength_strata=32, degrees=(5, 7), tolerance_px=0.5),
 }
+TRUSTED_FOR_DEGREE = 0.9
+"""A degree meets the tolerance when this fraction of its validation rays is trusted."""
 RAYS_PER_STEP = 2**17
 """Rays per batch (all paths together): bounds the memory of one step."""
 FALLBACK_CAPACITIES = (0.125, 0.25, 0.5, 1.0)
@@ -205,9 +208,14 @@ def _build_kernels(lens, geometry_lens, paths, quality, pitch_mm, field_deg, pro
         iterator = tqdm(iterator, desc="path systems", unit="path", leave=False)
     kernels, reports = [], []
     for k in iterator:
-        system = path_system(
-            geometry_lens, paths[k], degree=quality.degree, max_field_angle_deg=domain_field, tolerance_mm=quality.tolerance_px * pitch_mm,
-        )
+        # the polynomial degree from the pixel footprint: the lowest degree whose validation meets
+        # the render's pixel tolerance (else the highest tried)
+        for degree in quality.degrees:
+            system = path_system(
+                geometry_lens, paths[k], degree=degree, max_field_angle_deg=domain_field, tolerance_mm=quality.tolerance_px * pitch_mm,
+            )
+            if system.report.trusted_fraction >= TRUSTED_FOR_DEGREE:
+                break
         reports.append(system.report)
         kernels.append(_as_float32(system.with_lens(lens)))
     return kernels, reports
@@ -456,6 +464,8 @@ def render(
     if settings.core:
         layer_of_path[-1] = core_layer
 
+    # the per-path budget stays the same: culled paths take their samples with them
+    batches = max(1, math.ceil(batches * enabled.sum() / num_paths))
     exact_index = [k for k in range(num_paths) if fallback_of_path[k] == "exact"]
     adaptive = _adaptive_sets(lens, paths_all, exact_index, lights, rays_per_path)
     pilot_tables = {}
@@ -585,8 +595,8 @@ def render(
         total_seconds=float(time.perf_counter() - started),
         settings=dict(
             quality=settings.quality, method=method_name, fresnel=settings.fresnel, weights=settings.weights, sampling=settings.sampling,
-            colour_space=colour_space, seed=int(seed), wavelength_strata=level.wavelength_strata, degree=level.degree,
-            tolerance_px=level.tolerance_px, f_number=camera.f_number, aperture_blades=lens.aperture_blades,
+            colour_space=colour_space, seed=int(seed), wavelength_strata=level.wavelength_strata,
+            polynomial_degrees=list(level.degrees), tolerance_px=level.tolerance_px, f_number=camera.f_number, aperture_blades=lens.aperture_blades,
             cull_threshold=settings.cull_threshold,
         ),
         paths=[
@@ -595,6 +605,7 @@ def render(
                 energy=float(path_energy[k] @ luminance), rgb=[float(v) for v in path_energy[k]],
                 energy_bound=float(bound[k] * to_radiance * pitch * pitch), samples=int(path_samples[k]),
                 hit_rate=float(hits[k] / max(1.0, path_samples[k])),
+                polynomial_degree=None if reports[k] is None else int(reports[k].degree),
                 polynomial_validation_trusted_fraction=None if reports[k] is None else float(reports[k].trusted_fraction),
                 polynomial_untrusted_sample_fraction=None if reports[k] is None else float(untrusted_fraction[k]),
                 exact_fallback_capacity=None if fallback_of_path[k] == "exact" else float(fallback_of_path[k]),
