@@ -156,7 +156,7 @@ class Occluders:
         if isinstance(mesh, trimesh.Scene):
             mesh = _scene_to_mesh(mesh)
         if not isinstance(mesh, trimesh.Trimesh):
-            raise ValueError(f"{name}: expected a trimesh.Trimesh or trimesh.Scene, got {type(mesh).__name__}")
+            raise TypeError(f"{name}: expected a trimesh.Trimesh or trimesh.Scene, got {type(mesh).__name__}")
         mesh = mesh.copy()
         _check_mesh(mesh, name)
         return cls(mesh=mesh, intersector=_make_intersector(mesh), sources=(name,))
@@ -185,7 +185,7 @@ class Occluders:
 
     @property
     def num_triangles(self) -> int:
-        return int(len(self.mesh.faces))
+        return len(self.mesh.faces)
 
     def __repr__(self) -> str:
         backend = "embree" if self.uses_embree else "numpy"
@@ -316,7 +316,7 @@ def _load_one(path: str | os.PathLike):
         loaded = _scene_to_mesh(loaded)
     if not isinstance(loaded, trimesh.Trimesh):
         # e.g. a point cloud (PLY without faces)
-        raise ValueError(f"{name}: the file holds no triangles ({type(loaded).__name__}); the mesh is empty")
+        raise ValueError(f"{name}: the file holds no triangles ({type(loaded).__name__}); the mesh is empty")  # noqa: TRY004
     _check_mesh(loaded, name)
     return loaded
 

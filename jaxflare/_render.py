@@ -43,6 +43,7 @@ import math
 import time
 import warnings
 from collections.abc import Callable, Sequence
+from types import SimpleNamespace
 
 import equinox as eqx
 import jax
@@ -323,7 +324,7 @@ def _path_mask(adaptive: AdaptiveSet, enabled: np.ndarray) -> np.ndarray:
     return np.tile(np.repeat(enabled[np.asarray(adaptive.path_index)], table.num_cells), table.num_lights)
 
 
-def render(
+def prepare_render(
     scene: Scene | str,
     quality: str | None = None,
     seed: int = 0,
@@ -331,22 +332,12 @@ def render(
     samples: int | None = None,
     method: str | None = None,
     paths: Sequence[GhostPath] | None = None,
-    progress: bool | Callable[[int, int], None] = False,
-) -> RenderResult:
-    """Render the flares of ``scene`` (a :class:`Scene` or a scene TOML path).
-
-    Args:
-        scene: the scene; its ``render`` settings apply unless overridden here.
-        quality: ``"preview"`` or ``"production"`` (see :data:`QUALITY_LEVELS`); default the scene's.
-        seed: random seed; the same seed gives the same image.
-        samples: total Monte Carlo samples (default the quality's), rounded up to whole batches.
-        method: ``"exact"``, ``"polynomial"`` or ``"auto"`` (default the scene's).
-        paths: render only these ghost paths ``(j, i)`` (default: every two-reflection path).
-        progress: True for a progress bar on stderr, or a callable ``(batches_done, batches)``.
-
-    Returns:
-        A :class:`RenderResult` (image, layers, statistics; ``write_exr``/``write_png``).
-    """
+    progress: bool = False,
+) -> SimpleNamespace:
+    """Everything before the render's batches: settings, lens, paths, path systems, the pilot and
+    what it decides (layers, culling, sampling tables, polynomial fallbacks), and the final
+    :class:`RenderSetup`. :func:`render` runs the batches; the fitting package draws fixed sample
+    records from the same set-up (:func:`jaxflare._render_step.batch_records`)."""
     started = time.perf_counter()
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
@@ -484,6 +475,57 @@ def render(
     adaptive = learn(adaptive, pilot_tables)
     polynomial = _polynomial_groups(paths_all, kernels, fallback_of_path)
     setup = make_setup(adaptive, polynomial, layer_of_path, enabled)
+
+    return SimpleNamespace(
+        started=started, scene=scene, settings=settings, level=level, colour_space=colour_space, lens=lens, pitch=pitch,
+        spectral=spectral, lights=lights, light_indices=light_indices, field_deg=field_deg, paths_all=paths_all,
+        num_paths=num_paths, num_flares=num_flares, reports=reports, build_seconds=build_seconds, compile_seconds=compile_seconds,
+        num_individual=num_individual, merged_layer=merged_layer, core_layer=core_layer, num_layers=num_layers,
+        samples_per_batch=samples_per_batch, batches=batches, pilot_samples=pilot_samples, untrusted_fraction=untrusted_fraction,
+        fallback_of_path=fallback_of_path, methods=methods, bound=bound, brightest=brightest, enabled=enabled,
+        culled_bound=culled_bound, own=own, layer_of_path=layer_of_path, pilot_tables=pilot_tables, learn=learn, setup=setup,
+        step=step, key=key, adaptive_sampling=adaptive_sampling, method_name=method_name, luminance=luminance,
+    )
+
+
+def render(
+    scene: Scene | str,
+    quality: str | None = None,
+    seed: int = 0,
+    *,
+    samples: int | None = None,
+    method: str | None = None,
+    paths: Sequence[GhostPath] | None = None,
+    progress: bool | Callable[[int, int], None] = False,
+) -> RenderResult:
+    """Render the flares of ``scene`` (a :class:`Scene` or a scene TOML path).
+
+    Args:
+        scene: the scene; its ``render`` settings apply unless overridden here.
+        quality: ``"preview"`` or ``"production"`` (see :data:`QUALITY_LEVELS`); default the scene's.
+        seed: random seed; the same seed gives the same image.
+        samples: total Monte Carlo samples (default the quality's), rounded up to whole batches.
+        method: ``"exact"``, ``"polynomial"`` or ``"auto"`` (default the scene's).
+        paths: render only these ghost paths ``(j, i)`` (default: every two-reflection path).
+        progress: True for a progress bar on stderr, or a callable ``(batches_done, batches)``.
+
+    Returns:
+        A :class:`RenderResult` (image, layers, statistics; ``write_exr``/``write_png``).
+    """
+    prepared = prepare_render(scene, quality, seed, samples=samples, method=method, paths=paths, progress=progress is True)
+    p = prepared
+    (started, scene, settings, level, colour_space, lens, pitch, light_indices, field_deg, paths_all,
+     num_paths, num_flares, reports, build_seconds, compile_seconds, num_individual, merged_layer, core_layer, num_layers,
+     samples_per_batch, batches, pilot_samples, untrusted_fraction, fallback_of_path, methods, bound, brightest, enabled,
+     culled_bound, own, layer_of_path, pilot_tables, learn, setup, step, key, adaptive_sampling, method_name, luminance) = (
+        p.started, p.scene, p.settings, p.level, p.colour_space, p.lens, p.pitch, p.light_indices,
+        p.field_deg, p.paths_all, p.num_paths, p.num_flares, p.reports, p.build_seconds, p.compile_seconds, p.num_individual,
+        p.merged_layer, p.core_layer, p.num_layers, p.samples_per_batch, p.batches, p.pilot_samples, p.untrusted_fraction,
+        p.fallback_of_path, p.methods, p.bound, p.brightest, p.enabled, p.culled_bound, p.own, p.layer_of_path,
+        p.pilot_tables, p.learn, p.setup, p.step, p.key, p.adaptive_sampling, p.method_name, p.luminance,
+    )
+    camera = scene.camera
+    width, height = camera.resolution
 
     # the render
     render_started = time.perf_counter()

@@ -142,17 +142,38 @@ def interpolate_rows(table: Array, row: Array, grid: Array, wavelength: Array) -
     return table[row, below] * (1 - fraction) + table[row, below + 1] * fraction
 
 
-def _lens_and_scene_factor(setup: RenderSetup, connections: Connections, path: Array):
-    """Per sample: RGB before the lens path (light colour x flux x dirt x visibility) and the path's
-    Fresnel factor (Schlick model) -- everything of equation (2) except the path's own throughput."""
-    effects = setup.effects
-    rgb = light_rgb(setup.lights, setup.spectral, connections.light, connections.wavelength_nm) * connections.flux[:, None]
-    xy = front_vertex_plane_xy(connections.origins, connections.directions)
-    if effects.dirt is not None:
-        from ._dirt import dirt_transmission
+class SampleRecords(eqx.Module):
+    """What a batch's samples are, apart from the quantities a fit may change (light colour and
+    intensity, coatings, coating tints, dirt): the value of sample ``s`` is
+    ``light_rgb(light_s, wavelength_s) x geometry_s x fresnel(path_s, wavelength_s) x tint(path_s)
+    x dirt(front_xy_s)``, splatted at (column_s, row_s) when ``hit_s``."""
 
-        rgb = rgb * dirt_transmission(effects.dirt, xy, setup.front.radius_mm)
-    visible = jnp.ones(rgb.shape[0], bool)
+    path: Int[Array, " N"]
+    light: Int[Array, " N"]
+    wavelength_nm: Float[Array, " N"]
+    front_xy_mm: Float[Array, "N 2"]
+    """Where the sample crosses the front vertex plane (for the dirt map)."""
+    column: Float[Array, " N"]
+    row: Float[Array, " N"]
+    hit: Array
+    """Got through the lens, onto the picture, and its path is not culled."""
+    valid: Array
+    evaluated: Array
+    geometry: Float[Array, " N"]
+    """Flux factor (with the light's power) x visibility (hood, geometry) x the Schlick term at
+    the front lens (Schlick model only) x the sensor cosine x the normalised sample weight."""
+    exact_throughput: Float[Array, " N"] | None
+    """With ``fresnel="exact"``: the traced coated throughput (replaces the on-axis factor)."""
+    weight: Float[Array, " N"]
+    """The normalised sample weight (a_cell / q / batch size)."""
+    table_index: Int[Array, " N"] | None = None
+
+
+def _records(setup: RenderSetup, connections: Connections, path, traced, weight, table_index=None) -> SampleRecords:
+    width, height = setup.resolution
+    effects = setup.effects
+    xy = front_vertex_plane_xy(connections.origins, connections.directions)
+    visible = jnp.ones(xy.shape[0], bool)
     if effects.hood is not None:
         from ._occlusion import hood_visible
 
@@ -167,10 +188,39 @@ def _lens_and_scene_factor(setup: RenderSetup, connections: Connections, path: A
         directional = setup.lights.kind[connections.light] == 3
         end = jnp.where(directional[:, None], far_end, light_end)
         visible = visible & segment_visibility(effects.occluders, start, end)
-    rgb = jnp.where(visible[:, None], rgb, 0.0)
-    fresnel = interpolate_rows(setup.path_fresnel, path, setup.spectral.wavelength_nm, connections.wavelength_nm)
-    fresnel = fresnel * (1.0 - (1.0 - front_cosine(setup.lens, xy, connections.directions)) ** 5)
-    return rgb, fresnel
+    geometry = connections.flux * jnp.where(visible, 1.0, 0.0) * jnp.abs(traced.directions[:, 2]) * weight
+    if setup.schlick:
+        geometry = geometry * (1.0 - (1.0 - front_cosine(setup.lens, xy, connections.directions)) ** 5)
+    column, row = _image_position(setup, traced.positions[:, :2])
+    on_sensor = (column >= 0) & (column < width) & (row >= 0) & (row < height)
+    evaluated = traced.trusted if traced.trusted is not None else jnp.ones_like(traced.valid)
+    return SampleRecords(
+        path=path, light=connections.light, wavelength_nm=connections.wavelength_nm, front_xy_mm=xy, column=column, row=row,
+        hit=traced.valid & on_sensor & setup.path_enabled[path], valid=traced.valid, evaluated=evaluated, geometry=geometry,
+        exact_throughput=None if setup.schlick else traced.throughput, weight=weight, table_index=table_index,
+    )
+
+
+def record_values(
+    records: SampleRecords, lights: LightArrays, spectral, path_fresnel: Array, path_tint: Array, dirt: Array | None,
+    front_radius_mm, light_rgb_scale: Array | None = None,
+) -> Array:
+    """RGB value (N, 3) of each recorded sample for the given light colours, coatings (on-axis
+    Fresnel factor per path and wavelength), tints and dirt map: equation (2). Differentiable in all
+    of them; zero where the sample did not hit."""
+    rgb = light_rgb(lights, spectral, records.light, records.wavelength_nm)
+    if light_rgb_scale is not None:  # (NL, 3) multipliers of each light's colour x intensity
+        rgb = rgb * light_rgb_scale[records.light]
+    if records.exact_throughput is None:
+        fresnel = interpolate_rows(path_fresnel, records.path, spectral.wavelength_nm, records.wavelength_nm)
+    else:
+        fresnel = records.exact_throughput
+    value = rgb * (records.geometry * fresnel)[:, None] * path_tint[records.path]
+    if dirt is not None:
+        from ._dirt import dirt_transmission
+
+        value = value * dirt_transmission(dirt, records.front_xy_mm, front_radius_mm)
+    return jnp.where(records.hit[:, None], value, 0.0)
 
 
 def _image_position(setup: RenderSetup, sensor_xy: Array):
@@ -215,39 +265,9 @@ STEP_TRACES = [0]
 """How often the render step has been traced by JAX (tests use it to catch retracing)."""
 
 
-def render_step(setup: RenderSetup, acc: Accumulators, key: Array) -> Accumulators:
-    """One batch of every path set; returns the accumulators with the batch added."""
-    STEP_TRACES[0] += 1
-    width, height = setup.resolution
-    luminance_weights = setup.spectral.luminance_weights.astype(jnp.float32)
-    batch_luminance = jnp.zeros((1, height, width, 1), jnp.float32)
-
-    def record(acc, batch_luminance, path, value, incoming, hit, valid, evaluated, column, row, weight):
-        """Splat one set's samples and add their statistics (``value`` already normalised)."""
-        enabled = setup.path_enabled[path]
-        value = jnp.where((hit & enabled)[:, None], value, 0.0).astype(jnp.float32)
-        layer = setup.path_layer[path]
-        layers = _splat(acc.layers, layer, column, row, value, hit & enabled)
-        flare = setup.path_is_flare[path] & hit & enabled
-        lum = value @ luminance_weights
-        batch_luminance = _splat(batch_luminance, jnp.zeros_like(layer), column, row, lum[:, None], flare)
-        is_flare = setup.path_is_flare[path] & enabled
-        return eqx.tree_at(
-            lambda a: (a.layers, a.path_energy, a.path_incoming, a.path_hits, a.path_passed, a.path_unevaluated, a.path_samples, a.weight_all, a.weight_hits),
-            acc,
-            (
-                layers,
-                acc.path_energy.at[path].add(value),
-                acc.path_incoming.at[path].add(incoming.astype(jnp.float32)),
-                acc.path_hits.at[path].add(hit.astype(jnp.int32)),
-                acc.path_passed.at[path].add(valid.astype(jnp.int32)),
-                acc.path_unevaluated.at[path].add((~evaluated).astype(jnp.int32)),
-                acc.path_samples.at[path].add(1),
-                acc.weight_all + jnp.sum(jnp.where(is_flare, weight, 0.0)),
-                acc.weight_hits + jnp.sum(jnp.where(flare, weight, 0.0)),
-            ),
-        ), batch_luminance
-
+def batch_records(setup: RenderSetup, key: Array) -> tuple[SampleRecords, ...]:
+    """Sample and trace one batch of every path set: one :class:`SampleRecords` per set."""
+    records = []
     for k, adaptive in enumerate(setup.adaptive):
         count = adaptive.samples
         k_table, k_rays = jax.random.split(jax.random.fold_in(key, 1000 + k))
@@ -257,41 +277,58 @@ def render_step(setup: RenderSetup, acc: Accumulators, key: Array) -> Accumulato
         )
         path = adaptive.path_index[slot]
         traced = _trace_events(setup.lens, connections.origins, connections.directions, connections.wavelength_nm, adaptive.events[slot], 1)
-        rgb, fresnel = _lens_and_scene_factor(setup, connections, path)
-        if not setup.schlick:
-            fresnel = traced.throughput
-        column, row = _image_position(setup, traced.positions[:, :2])
-        on_sensor = (column >= 0) & (column < width) & (row >= 0) & (row < height)
-        hit = traced.valid & on_sensor
-        norm = weight / count
-        tint = setup.path_tint[path]
-        value = rgb * (fresnel * jnp.abs(traced.directions[:, 2]) * norm)[:, None] * tint
-        incoming = (rgb @ luminance_weights) * norm
-        acc, batch_luminance = record(acc, batch_luminance, path, value, incoming, hit, traced.valid, jnp.ones_like(hit), column, row, norm)
-        energy = jnp.where(hit & setup.path_enabled[path], value @ luminance_weights, 0.0)
-        acc = eqx.tree_at(lambda a: a.table_energy[k], acc, acc.table_energy[k].at[index].add(energy.astype(jnp.float32)))
+        records.append(_records(setup, connections, path, traced, weight / count, index))
 
-    for g, group in enumerate(setup.polynomial):
+    for group in setup.polynomial:
         from ._path_system import evaluate
 
         n = setup.rays_per_path
         keys = jax.vmap(lambda p: jax.random.fold_in(key, p))(group.path_index)
         connections = jax.vmap(lambda k: sample_connections(setup.lights, setup.front, setup.spectral, k, n, setup.wavelength_strata))(keys)
         traced = jax.vmap(evaluate)(group.kernel, connections.origins, connections.directions, connections.wavelength_nm)
-        flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), (connections, traced))
-        connections, traced = flat
+        connections, traced = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), (connections, traced))
         path = jnp.repeat(group.path_index, n)
-        rgb, fresnel = _lens_and_scene_factor(setup, connections, path)
-        if not setup.schlick:
-            fresnel = traced.throughput
-        column, row = _image_position(setup, traced.positions[:, :2])
-        on_sensor = (column >= 0) & (column < width) & (row >= 0) & (row < height)
-        hit = traced.valid & on_sensor
-        norm = jnp.full(hit.shape, 1.0 / n, jnp.float32)
-        value = rgb * (fresnel * jnp.abs(traced.directions[:, 2]) / n)[:, None] * setup.path_tint[path]
-        incoming = (rgb @ luminance_weights) / n
-        acc, batch_luminance = record(acc, batch_luminance, path, value, incoming, hit, traced.valid, traced.trusted, column, row, norm)
+        records.append(_records(setup, connections, path, traced, jnp.full(path.shape, 1.0 / n, connections.flux.dtype)))
+    return tuple(records)
 
+
+def render_step(setup: RenderSetup, acc: Accumulators, key: Array) -> Accumulators:
+    """One batch of every path set; returns the accumulators with the batch added."""
+    STEP_TRACES[0] += 1
+    width, height = setup.resolution
+    luminance_weights = setup.spectral.luminance_weights.astype(jnp.float32)
+    batch_luminance = jnp.zeros((1, height, width, 1), jnp.float32)
+    adaptive_count = len(setup.adaptive)
+    for k, records in enumerate(batch_records(setup, key)):
+        value = record_values(
+            records, setup.lights, setup.spectral, setup.path_fresnel, setup.path_tint, setup.effects.dirt, setup.front.radius_mm,
+        ).astype(jnp.float32)
+        path, hit = records.path, records.hit
+        layer = setup.path_layer[path]
+        flare = setup.path_is_flare[path] & hit
+        lum = value @ luminance_weights
+        # light entering the front disc (before the lens path), for the culling bound
+        incoming = (light_rgb(setup.lights, setup.spectral, records.light, records.wavelength_nm) @ luminance_weights) * records.geometry
+        is_flare = setup.path_is_flare[path] & setup.path_enabled[path]
+        acc = eqx.tree_at(
+            lambda a: (a.layers, a.path_energy, a.path_incoming, a.path_hits, a.path_passed, a.path_unevaluated, a.path_samples, a.weight_all, a.weight_hits),
+            acc,
+            (
+                _splat(acc.layers, layer, records.column, records.row, value, hit),
+                acc.path_energy.at[path].add(value),
+                acc.path_incoming.at[path].add(incoming.astype(jnp.float32)),
+                acc.path_hits.at[path].add(hit.astype(jnp.int32)),
+                acc.path_passed.at[path].add(records.valid.astype(jnp.int32)),
+                acc.path_unevaluated.at[path].add((~records.evaluated).astype(jnp.int32)),
+                acc.path_samples.at[path].add(1),
+                acc.weight_all + jnp.sum(jnp.where(is_flare, records.weight, 0.0)),
+                acc.weight_hits + jnp.sum(jnp.where(flare, records.weight, 0.0)),
+            ),
+        )
+        batch_luminance = _splat(batch_luminance, jnp.zeros_like(layer), records.column, records.row, lum[:, None], flare)
+        if k < adaptive_count:
+            energy = jnp.where(hit, lum, 0.0)
+            acc = eqx.tree_at(lambda a: a.table_energy[k], acc, acc.table_energy[k].at[records.table_index].add(energy))
     image = batch_luminance[0, :, :, 0]
     return eqx.tree_at(
         lambda a: (a.flare_luminance_sum, a.flare_luminance_squares),

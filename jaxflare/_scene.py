@@ -345,6 +345,10 @@ def check_camera(camera: Camera, where: str = "camera") -> None:
         shape = _choice(f"{where}.hood.shape", hood.shape, ("circular", "rectangular"))
         _number(f"{where}.hood.distance_mm", hood.distance_mm, minimum=0.0, exclusive=True)
         needed = ("radius_mm",) if shape == "circular" else ("half_width_mm", "half_height_mm")
+        other = ("half_width_mm", "half_height_mm") if shape == "circular" else ("radius_mm",)
+        for name in other:
+            if getattr(hood, name) is not None:
+                _fail(f"{where}.hood.{name}", f"belongs to the other hood shape: a {shape} hood takes {' and '.join(needed)}")
         for name in needed:
             if getattr(hood, name) is None:
                 _fail(f"{where}.hood.{name}", f"a {shape} hood needs {' and '.join(needed)}")

@@ -11,7 +11,7 @@ import pytest
 
 trimesh = pytest.importorskip("trimesh")
 
-from jaxflare._occlusion import (  # noqa: E402
+from jaxflare._occlusion import (
     Hood,
     Occluders,
     embree_available,
@@ -20,7 +20,7 @@ from jaxflare._occlusion import (  # noqa: E402
     load_occluders,
     segment_visibility,
 )
-from jaxflare._scene import Camera  # noqa: E402
+from jaxflare._scene import Camera
 
 
 def rectangle(x0, x1, y0, y1, z):
@@ -93,8 +93,8 @@ def test_plate_blocks_exactly_the_segments_it_covers(plate_occluders):
 
 def test_segments_short_of_or_behind_the_plate_or_touching_it_are_visible(plate_occluders):
     xy = np.array([[0.5, 0.0], [0.2, 0.3], [0.9, -0.4]])
-    column = lambda z: np.full((3, 1), z)  # noqa: E731
-    at = lambda z: np.concatenate([xy, column(z)], axis=-1)  # noqa: E731
+    column = lambda z: np.full((3, 1), z)
+    at = lambda z: np.concatenate([xy, column(z)], axis=-1)
     occ = plate_occluders
     assert occ.segment_visible(at(-2.0), at(-0.01)).all()  # ends before the plate
     assert occ.segment_visible(at(0.01), at(2.0)).all()  # starts behind it

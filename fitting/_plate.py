@@ -1,0 +1,425 @@
+"""Reference images ("plates") for fitting a lens's coatings and dirt to a real flare.
+
+What a plate is
+---------------
+A plate is the image a fit tries to reproduce: the flare of one light through the lens, as a
+camera (or another renderer) recorded it, at exactly the scene's ``camera.resolution``. It is
+held as a :class:`Plate`: ``rgb``, an ``(H, W, 3)`` float64 array of *linear* values, and
+``weight``, an ``(H, W)`` float64 array saying how much each pixel counts in the fit.
+
+Units
+-----
+The fit compares the plate with jaxflare's render pixel by pixel, so the plate must be in the same
+units: the camera-equation radiance that :func:`jaxflare.render` writes (a synthetic plate saved
+from a render with :func:`save_plate` is already in them). A photographic plate is in its own
+exposure units: linearise it (a raw developed without a tone curve, or an EXR) and it differs from
+the render by one overall factor, which the fit can absorb in the light's intensity parameter.
+Anything that is not linear (a JPEG, an sRGB-encoded PNG) must be decoded first; for sRGB files
+``load_plate(..., encoding="srgb")`` applies the inverse sRGB transfer function.
+
+Files
+-----
+* OpenEXR (``.exr``, via :func:`jaxflare._exr.read_exr`): any layer by name. With ``layer=None`` the
+  default layer ``""`` is used, or the only layer if the file has just one; a file with several
+  layers and no default one needs ``layer=``. RGB, RGBA (alpha dropped) or Y (grey, broadcast to
+  RGB). Values are taken as they are (EXR is linear by convention).
+* PNG and TIFF (``.png``, ``.tif``, ``.tiff``, via Pillow): 16-bit values are divided by 65535,
+  8-bit ones by 255 (with a :class:`PlateQuantisationWarning`: 8 bits quantise a faint flare, often
+  a few thousandths of the light's own image, to a handful of levels), single-channel float TIFFs
+  are taken as they are. Grey images are broadcast to RGB, alpha is dropped. The values are treated
+  as LINEAR unless ``encoding="srgb"``. (Pillow itself reads 16-bit-per-channel colour PNG and TIFF
+  files as 8-bit; :func:`load_plate` recovers the low bytes, so all 16 bits are used.)
+
+Masks and weights
+-----------------
+``mask`` (an image file, PNG/TIFF/EXR, or an array of the plate's ``(H, W)``) says which pixels the
+fit uses: 1 = use the pixel, 0 = ignore it (e.g. where the plate shows picture content rather than
+flare, a clipped light source, or a region with no flare), values in between weight the pixel
+down. RGB masks are reduced to their Rec. 709 luminance; mask files are read as linear values
+(no sRGB decoding) and must lie in ``[0, 1]``.
+
+``noise_sigma`` (a scalar or an ``(H, W)`` array) is the per-pixel standard deviation of the
+plate's noise, in the plate's units. The weight is ``mask / noise_sigma`` (``mask`` is 1 when not
+given, ``noise_sigma`` 1 when not given), and the fit's residual is
+``weight * (render - plate)``: with a noise model, residuals are in units of sigma.
+
+Non-finite pixels (NaN, infinity) are an error, except under weight 0 (where the mask is 0): those
+are allowed, and set to 0 in ``Plate.rgb``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import warnings
+
+import numpy as np
+
+__all__ = ["PLATE_FORMATS", "Plate", "PlateQuantisationWarning", "load_plate", "save_plate"]
+
+PLATE_FORMATS = "OpenEXR (.exr), 16-bit PNG (.png) or 16-bit TIFF (.tif, .tiff)"
+"""The plate formats :func:`load_plate` reads, for messages (8-bit PNG/TIFF are read with a warning)."""
+
+_PILLOW_EXTENSIONS = (".png", ".tif", ".tiff")
+_EXR_EXTENSIONS = (".exr",)
+_ENCODINGS = ("linear", "srgb")
+_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 / sRGB primaries
+# Pillow modes read as they are (after dropping alpha); any other mode is converted to RGB first.
+_DIRECT_MODES = {"L", "LA", "RGB", "RGBA", "I", "I;16", "I;16B", "I;16L", "I;16N", "F"}
+
+
+class PlateQuantisationWarning(UserWarning):
+    """An 8-bit plate: faint flare detail is quantised to steps of 1/255."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Plate:
+    """A reference image for a fit.
+
+    ``rgb``: ``(H, W, 3)`` float64 linear values, in the units jaxflare renders in (see the module
+    docstring); finite everywhere. ``weight``: ``(H, W)`` float64, 0 where the pixel is masked out,
+    else the per-pixel residual weight (1 by default, ``mask / noise_sigma`` in general); finite,
+    non-negative and not all zero. ``source``: where the plate came from (a file path).
+    ``layer``: the EXR layer read ("" for the default layer and for PNG/TIFF files).
+
+    Both arrays are stored as read-only float64 copies.
+    """
+
+    rgb: np.ndarray
+    weight: np.ndarray
+    source: str = ""
+    layer: str = ""
+
+    def __post_init__(self) -> None:
+        rgb = np.array(self.rgb, dtype=np.float64)
+        weight = np.array(self.weight, dtype=np.float64)
+        if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.shape[0] == 0 or rgb.shape[1] == 0:
+            raise ValueError(f"Plate.rgb must have shape (H, W, 3), got {rgb.shape}")
+        if weight.shape != rgb.shape[:2]:
+            raise ValueError(f"Plate.weight must have shape (H, W) = {rgb.shape[:2]}, got {weight.shape}")
+        if not np.all(np.isfinite(rgb)):
+            raise ValueError("Plate.rgb has non-finite values")
+        if not np.all(np.isfinite(weight)) or np.any(weight < 0):
+            raise ValueError("Plate.weight must be finite and non-negative")
+        if not np.any(weight > 0):
+            raise ValueError("Plate.weight is zero everywhere: nothing to fit")
+        rgb.setflags(write=False)
+        weight.setflags(write=False)
+        object.__setattr__(self, "rgb", rgb)
+        object.__setattr__(self, "weight", weight)
+        object.__setattr__(self, "source", str(self.source))
+        object.__setattr__(self, "layer", str(self.layer))
+
+    @property
+    def width(self) -> int:
+        return int(self.rgb.shape[1])
+
+    @property
+    def height(self) -> int:
+        return int(self.rgb.shape[0])
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """``(width, height)`` in pixels, as in a scene's ``camera.resolution``."""
+        return self.width, self.height
+
+
+# --------------------------------------------------------------------------------------------------
+# Reading images
+
+
+def _format_error(what: str, path: str, reason: str) -> ValueError:
+    formats = PLATE_FORMATS if what == "plate" else "OpenEXR (.exr), PNG (.png) or TIFF (.tif, .tiff)"
+    return ValueError(f"cannot read {what} {path!r}: {reason}; {what}s must be {formats}")
+
+
+def _rawmode(tile_args: object) -> str | None:
+    if isinstance(tile_args, str):
+        return tile_args
+    if isinstance(tile_args, tuple) and tile_args and isinstance(tile_args[0], str):
+        return tile_args[0]
+    return None
+
+
+def _swap_endianness(tile_args: object) -> object:
+    def swap(rawmode: str) -> str:
+        return rawmode.replace(";16B", ";16#").replace(";16L", ";16B").replace(";16#", ";16L")
+
+    if isinstance(tile_args, str):
+        return swap(tile_args)
+    return (swap(tile_args[0]), *tile_args[1:])  # type: ignore[index]
+
+
+def _is_16bit_colour(image: object) -> bool:
+    """Whether Pillow would narrow this image's 16-bit channels to 8 bits (colour PNG/TIFF)."""
+    if image.mode not in ("RGB", "RGBA", "LA", "L"):  # type: ignore[attr-defined]
+        return False
+    rawmodes = [_rawmode(tile.args) for tile in image.tile]  # type: ignore[attr-defined]
+    return any(rawmode is not None and ";16" in rawmode for rawmode in rawmodes)
+
+
+def _read_16bit_colour(path: str) -> np.ndarray:
+    """Read a 16-bit-per-channel colour PNG/TIFF in full. Pillow unpacks such files to 8 bits (the
+    high byte of each value); decoding the same data a second time with the byte order swapped
+    yields the low bytes, and the two make up the 16-bit values."""
+    from PIL import Image
+
+    halves = []
+    for swapped in (False, True):
+        with Image.open(path) as image:
+            if swapped:
+                image.tile = [tile._replace(args=_swap_endianness(tile.args)) for tile in image.tile]
+            image.load()
+            halves.append(np.asarray(image).astype(np.uint16))
+    return (halves[0] << 8) | halves[1]
+
+
+def _read_pillow(path: str, what: str) -> tuple[np.ndarray, int | None]:
+    """Pixels as (H, W, C) float64 in [0, 1] (or as stored for float images), alpha dropped, and the
+    bit depth of an integer image (None for float images)."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            sixteen_bit_colour = _is_16bit_colour(image)
+            if not sixteen_bit_colour:
+                image.load()
+                if image.mode == "1":
+                    image = image.convert("L")
+                elif image.mode in ("P", "PA"):
+                    image = image.convert("RGBA")
+                elif image.mode not in _DIRECT_MODES:  # CMYK, YCbCr, LAB, RGBX, ...
+                    image = image.convert("RGB")
+                mode = image.mode
+                pixels = np.asarray(image)
+            else:
+                mode = image.mode
+        if sixteen_bit_colour:
+            try:
+                pixels = _read_16bit_colour(path)
+            except (OSError, ValueError, KeyError, SyntaxError) as error:
+                raise ValueError(
+                    f"cannot read the 16-bit {mode} {what} {path!r} in full ({type(error).__name__}: {error}); "
+                    "save it as an OpenEXR file instead"
+                ) from None
+    except (UnidentifiedImageError, OSError, SyntaxError) as error:
+        raise _format_error(what, path, f"not a readable image ({type(error).__name__}: {error})") from None
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    if pixels.ndim != 3:
+        raise _format_error(what, path, f"unexpected pixel array shape {pixels.shape} (mode {mode!r})")
+    if mode in ("LA", "RGBA"):
+        pixels = pixels[..., :-1]
+    if pixels.dtype == np.uint8:
+        return pixels.astype(np.float64) / 255.0, 8
+    if pixels.dtype.kind == "u" and pixels.dtype.itemsize == 2:
+        return pixels.astype(np.float64) / 65535.0, 16
+    if pixels.dtype.kind == "i":  # mode "I": Pillow's 32-bit container
+        low, high = int(pixels.min()), int(pixels.max())
+        if low < 0 or high > 65535:
+            raise ValueError(
+                f"{what} {path!r}: integer values span [{low}, {high}], beyond 16 bits; save it as a 16-bit image or an EXR"
+            )
+        return pixels.astype(np.float64) / 65535.0, 16
+    if pixels.dtype.kind == "f":
+        return pixels.astype(np.float64), None
+    raise _format_error(what, path, f"unsupported pixel type {pixels.dtype} (mode {mode!r})")
+
+
+def _read_exr_layer(path: str, layer: str | None, what: str) -> tuple[np.ndarray, str]:
+    from jaxflare._exr import read_exr
+
+    try:
+        layers, _ = read_exr(path)
+    except ValueError as error:
+        raise _format_error(what, path, str(error)) from None
+    listing = ", ".join(repr(name) for name in layers)
+    if layer is None:
+        if "" in layers:
+            layer = ""
+        elif len(layers) == 1:
+            layer = next(iter(layers))
+        else:
+            raise ValueError(f"{what} {path!r} has several layers and no default one: {listing}; choose one with layer=...")
+    elif layer not in layers:
+        raise ValueError(f"{what} {path!r} has no layer {layer!r}; its layers are: {listing}")
+    pixels = layers[layer]
+    if pixels.shape[-1] == 4:
+        pixels = pixels[..., :3]
+    return pixels.astype(np.float64), layer
+
+
+def _read_image(path: str | os.PathLike, layer: str | None, what: str) -> tuple[np.ndarray, str, str, int | None]:
+    """(pixels (H, W, C) float64 with C in {1, 3}, path, layer, integer bit depth or None)."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"no such {what} file: {path!r}")
+    extension = os.path.splitext(path)[1].lower()
+    if extension in _EXR_EXTENSIONS:
+        pixels, layer = _read_exr_layer(path, layer, what)
+        return pixels, path, layer, None
+    if extension in _PILLOW_EXTENSIONS:
+        if layer not in (None, ""):
+            raise ValueError(f"{what} {path!r}: layer={layer!r} given, but only EXR files have layers")
+        pixels, bits = _read_pillow(path, what)
+        if pixels.shape[-1] not in (1, 3):
+            raise ValueError(f"{what} {path!r} has {pixels.shape[-1]} channels; expected 1 (grey) or 3 (RGB)")
+        return pixels, path, "", bits
+    raise _format_error(what, path, f"unsupported extension {extension or '(none)'!r}")
+
+
+def _srgb_to_linear(values: np.ndarray) -> np.ndarray:
+    """The inverse sRGB transfer function (IEC 61966-2-1), extended to negative values by symmetry."""
+    magnitude = np.abs(values)
+    linear = np.where(magnitude <= 0.04045, magnitude / 12.92, ((magnitude + 0.055) / 1.055) ** 2.4)
+    return np.sign(values) * linear
+
+
+def _size_text(size: tuple[int, int]) -> str:
+    return f"{size[0]} x {size[1]} (width x height)"
+
+
+# --------------------------------------------------------------------------------------------------
+# Masks and noise
+
+
+def _mask_array(mask: str | os.PathLike | np.ndarray, shape: tuple[int, int], plate_path: str) -> np.ndarray:
+    plate_size = (shape[1], shape[0])
+    if isinstance(mask, (str, os.PathLike)):
+        pixels, mask_path, _, _ = _read_image(mask, None, "mask")
+        where = f"mask {mask_path!r}"
+    else:
+        pixels = np.asarray(mask)
+        if pixels.dtype.kind not in "biuf":
+            raise ValueError(f"mask: expected a numeric or boolean array, got dtype {pixels.dtype}")
+        pixels = pixels.astype(np.float64)
+        if pixels.ndim == 2:
+            pixels = pixels[..., None]
+        if pixels.ndim != 3 or pixels.shape[-1] not in (1, 3):
+            raise ValueError(f"mask array must have shape (H, W), (H, W, 1) or (H, W, 3), got {pixels.shape}")
+        where = "mask array"
+    mask_size = (pixels.shape[1], pixels.shape[0])
+    if mask_size != plate_size:
+        raise ValueError(
+            f"{where} is {_size_text(mask_size)} but plate {plate_path!r} is {_size_text(plate_size)}; "
+            "the mask must match the plate"
+        )
+    if not np.all(np.isfinite(pixels)):
+        count = int(np.size(pixels) - np.count_nonzero(np.isfinite(pixels)))
+        raise ValueError(f"{where} has {count} non-finite (NaN or infinite) value(s)")
+    values = pixels[..., 0] if pixels.shape[-1] == 1 else pixels @ _LUMINANCE
+    low, high = float(values.min()), float(values.max())
+    if low < -1e-9 or high > 1 + 1e-9:
+        raise ValueError(f"{where}: values span [{low:.6g}, {high:.6g}], outside [0, 1] (1 = use the pixel, 0 = ignore it)")
+    values = np.clip(values, 0.0, 1.0)
+    if not np.any(values > 0):
+        raise ValueError(f"empty mask: nothing to fit ({where} is 0 everywhere)")
+    return values
+
+
+def _sigma_array(noise_sigma: float | np.ndarray, shape: tuple[int, int], mask: np.ndarray) -> np.ndarray:
+    sigma = np.asarray(noise_sigma, dtype=np.float64)
+    if sigma.ndim == 0:
+        sigma = np.full(shape, float(sigma))
+    elif sigma.shape != shape:
+        raise ValueError(f"noise_sigma must be a scalar or an (H, W) = {shape} array matching the plate, got shape {sigma.shape}")
+    used = mask > 0
+    bad = used & ~(np.isfinite(sigma) & (sigma > 0))
+    if np.any(bad):
+        raise ValueError(
+            f"noise_sigma must be finite and > 0 wherever the mask is non-zero; it is not at {int(np.count_nonzero(bad))} pixel(s)"
+        )
+    return sigma
+
+
+# --------------------------------------------------------------------------------------------------
+# Public API
+
+
+def load_plate(
+    path: str | os.PathLike,
+    *,
+    layer: str | None = None,
+    mask: str | os.PathLike | np.ndarray | None = None,
+    expected_size: tuple[int, int] | None = None,
+    noise_sigma: float | np.ndarray | None = None,
+    encoding: str = "linear",
+) -> Plate:
+    """Read a plate (a reference flare image) for a fit; see the module docstring.
+
+    ``layer``: the EXR layer (``None``: the default layer "", else the only layer). ``mask``: an
+    image file or an ``(H, W)`` (or ``(H, W, 1|3)``) array in ``[0, 1]``, 1 = use the pixel.
+    ``expected_size``: ``(width, height)``, the scene's ``camera.resolution``; a plate of another
+    size is an error. ``noise_sigma``: per-pixel noise standard deviation (scalar or ``(H, W)``);
+    the weight becomes ``mask / noise_sigma``. ``encoding``: ``"linear"`` (values used as read) or
+    ``"srgb"`` (the inverse sRGB transfer function is applied to the plate, not to the mask).
+
+    Raises ``FileNotFoundError`` for a missing plate or mask file, and ``ValueError`` for an
+    unreadable or unsupported file, a missing or ambiguous layer, a size mismatch, non-finite pixels
+    where the weight is not 0, a bad or empty mask, or a non-positive ``noise_sigma``. An 8-bit
+    PNG/TIFF plate gives a :class:`PlateQuantisationWarning`.
+    """
+    if encoding not in _ENCODINGS:
+        raise ValueError(f"encoding must be one of {_ENCODINGS}, got {encoding!r}")
+    if expected_size is not None:
+        if (
+            isinstance(expected_size, (str, bytes))
+            or len(expected_size) != 2
+            or not all(isinstance(v, (int, np.integer)) and v > 0 for v in expected_size)
+        ):
+            raise ValueError(f"expected_size must be (width, height) in pixels, got {expected_size!r}")
+        expected_size = (int(expected_size[0]), int(expected_size[1]))
+
+    pixels, path, layer, bits = _read_image(path, layer, "plate")
+    if bits == 8:
+        warnings.warn(
+            f"plate {path!r} is an 8-bit image: faint flares (ghosts are often a few thousandths of the light's own "
+            "image) are quantised to steps of 1/255; prefer a 16-bit PNG/TIFF or an EXR",
+            PlateQuantisationWarning,
+            stacklevel=2,
+        )
+    height, width = pixels.shape[:2]
+    if expected_size is not None and (width, height) != expected_size:
+        raise ValueError(
+            f"plate {path!r} is {_size_text((width, height))} but the scene renders {_size_text(expected_size)}; "
+            "the plate must match the scene's camera.resolution"
+        )
+    rgb = np.broadcast_to(pixels, (height, width, 3)).astype(np.float64)
+
+    weight = np.ones((height, width)) if mask is None else _mask_array(mask, (height, width), path)
+    finite = np.all(np.isfinite(rgb), axis=-1)
+    bad = ~finite & (weight > 0)
+    if np.any(bad):
+        count = int(np.count_nonzero(bad))
+        if mask is None:
+            raise ValueError(
+                f"plate {path!r} has {count} pixel(s) with non-finite (NaN or infinite) values; "
+                "fix the file or mask them out (mask 0 there)"
+            )
+        raise ValueError(
+            f"plate {path!r} has {count} pixel(s) with non-finite (NaN or infinite) values where the mask is non-zero; "
+            "set the mask to 0 there"
+        )
+    rgb[~finite] = 0.0
+    if encoding == "srgb":
+        rgb = _srgb_to_linear(rgb)
+    if noise_sigma is not None:
+        sigma = _sigma_array(noise_sigma, (height, width), weight)
+        used = weight > 0
+        weight = np.where(used, weight / np.where(used, sigma, 1.0), 0.0)
+    return Plate(rgb=rgb, weight=weight, source=path, layer=layer)
+
+
+def save_plate(path: str | os.PathLike, rgb: np.ndarray, *, layer: str = "", pixel_type: str = "float") -> None:
+    """Write ``rgb`` (``(H, W, 3)``, or ``(H, W)`` / ``(H, W, 1)`` grey, saved as a Y layer) to an
+    EXR plate at ``path`` (float32 by default; ``pixel_type="half"`` for float16), in ``layer``
+    ("" = the default layer). Values must be finite. For tests and synthetic plates; read it back
+    with :func:`load_plate`."""
+    from jaxflare._exr import write_exr
+
+    array = np.asarray(rgb)
+    if array.ndim == 2:
+        array = array[..., None]
+    if array.ndim != 3 or array.shape[-1] not in (1, 3):
+        raise ValueError(f"save_plate expects an (H, W, 3) or (H, W) array, got shape {array.shape}")
+    write_exr(path, {layer: array}, pixel_type=pixel_type)
