@@ -26,7 +26,7 @@ seconds, one line per mode, one panel per scene.
 Part 2, **model choices** (``model_choices.{csv,json,png}``), on two lenses (Zeiss Biotar and
 Tronnier Heliar: a double Gauss and a triplet-derived design) in a comparable scene: the demo camera
 with that lens at f/4, one sphere light 6 degrees off-axis, 720p. Every render uses the same total
-sample count N (2^21) unless said otherwise, so the per-path budget is the same. For each choice the
+sample count N (2^20) unless said otherwise, so the per-path budget is the same. For each choice the
 "full model" and the "reduced" render are timed (median wall of two seeds, warm: every compiled
 configuration has had a warm-up render) and compared:
 
@@ -46,9 +46,15 @@ configuration has had a warm-up render) and compared:
   (``half_field_of_view_deg``): build seconds, validation p99 error and trusted fraction (no image);
 - **occlusion**: the scene without geometry (the renderer skips the ray casts) against the same
   scene with a mesh that blocks nothing: ``far`` (a box 100 m away: every segment misses its bounding
-  box and is answered without casting) and ``enclosing`` (two small triangles at opposite corners of
-  a box around camera and lamp: every segment is cast with Embree and misses). Same seeds, so the
-  images must be identical.
+  box and is answered without casting), rendered as shipped, i.e. each render loads the mesh and,
+  since the step holds the ``Occluders`` as a static field hashed by identity, re-compiles the
+  render step; and ``enclosing`` (two small triangles at opposite corners of a box around camera and
+  lamp: every segment is cast with Embree and misses), rendered with the mesh loading memoised
+  (:class:`CachedOccluderLoading`) so the step compiles once and the timing is the ray casts'.
+  Same seeds as the scene without geometry, so the images must be identical.
+
+The part-1 renders of the geometry scene use the memoised loading as well (otherwise every one of
+them would include a compile).
 
 **Noise and error.** On the flare RGB ``result.image[..., :3]`` (no core), whole-image squared
 norms, as ``bench_render.py``: two renders A, B of one configuration give sigma^2 = ||A - B||^2 / 2,
@@ -59,10 +65,18 @@ sigma_F^2 / 2) / ||mu_F||^2, so the **bias estimate** (the error of the reduced 
 sqrt(max(0, raw^2 - (sigma_F^2 / 2 + sigma_R^2) / ||mu_F||^2)); the ``noise floor`` column is the
 subtracted term's square root, the scale below which a bias cannot be resolved. Comparisons with
 the same seeds (auto against exact, occlusion) draw the same samples, so their difference is the
-model error directly (``paired``): raw = bias = sqrt(mean_i ||R_i - F_i||^2 / ||mu_F||^2).
+model error directly (``paired``): raw = bias = sqrt(mean_i ||R_i - F_i||^2 / ||mu_F||^2). ``auto``
+is compared with independent seeds: it samples differently from ``exact`` (its pilot's sampling
+tables are not kept), so same seeds do not give the same samples.
 
-``--quick``: 320x180, 2^14 ... 2^16 samples, only the 3 strongest ghost paths of each lens
-(``paths=``), 1 path for the field-angle builds; writes into a new temporary folder (printed)
+**Timing.** The median wall time of the renders of a configuration that did not trace the render
+step (``STEP_TRACES``): ``method="auto"`` can re-compile after the pilot when a path's exact-fallback
+capacity differs from the warm-up's; such a render is not counted when the other seed's was warm
+(all records, with ``step_traces``, are in the JSON).
+
+``--quick``: 320x180, 2^15 ... 2^17 samples, only the 3 strongest ghost paths (``paths=``), the
+Biotar only in part 2, 1 path for the field-angle builds (about 8 min on the loaded 2-core machine,
+most of it compiling); writes into a new temporary folder (printed)
 unless ``--out`` is given, never into ``benchmarks/results``.
 """
 
@@ -109,7 +123,7 @@ FULL = {
     "convergence": True, "choices": True,
 }
 QUICK = dict(FULL, resolution=(320, 180), convergence_samples=[2**15, 2**16, 2**17], choice_samples=2**16,
-             warmup_samples=2**13, field_paths=1, paths=3)
+             warmup_samples=2**13, field_paths=1, paths=3, lenses=["zeiss_biotar"])
 
 MODES = {  # name: (sampling, method)
     "uniform": ("uniform", "exact"),
@@ -331,7 +345,7 @@ class SamplingBench:
     def step(self, name: str, fn, *args) -> None:
         try:
             fn(*args)
-        except Exception as error:
+        except Exception as error:  # noqa: BLE001  (one failed part must not lose the others)
             self.skipped.append(f"{name} failed: {type(error).__name__}: {error}")
             self.log(f"\nnote: {self.skipped[-1]}")
             traceback.print_exc()
@@ -362,7 +376,7 @@ class SamplingBench:
         self.log("\n-- convergence: warm-up (compile; auto: path-system build into the fresh cache, reported separately)")
         warm = {}
         for name, scene in scenes.items():
-            record, _, stats = self.render(scene, f"warm-up {name} exact", samples=cfg["warmup_samples"], method="exact")
+            record, _, _ = self.render(scene, f"warm-up {name} exact", samples=cfg["warmup_samples"], method="exact")
             warm[name] = record
             record, _, _ = self.render(scene, f"warm-up {name} auto (build)", samples=cfg["warmup_samples"], method="auto")
             self.checks.setdefault("auto_build", {})[name] = {"setup_seconds": record["setup_seconds"], "wall_seconds": record["wall_seconds"],
@@ -444,7 +458,6 @@ class SamplingBench:
         w = cfg["warmup_samples"]
         self.render(scene, f"warm-up {lens} exact", samples=w, method="exact")
         self.render(scene, f"warm-up {lens} production strata", samples=w, method="exact", quality="production")
-        self.render(scene_far, f"warm-up {lens} far mesh (as shipped)", samples=w, method="exact")
         auto_warm, _, _ = self.render(scene, f"warm-up {lens} auto (build)", samples=w, method="auto")
         build = auto_warm["setup_seconds"]
 
@@ -508,23 +521,22 @@ class SamplingBench:
                                                     "polynomial_untrusted_sample_fraction", "exact_fallback_capacity")} for p in auto_s[0]["paths"]]
         del auto_i
 
-        for kind, s in (("far", scene_far), ("enclosing", scene_enc)):
-            with CachedOccluderLoading():
-                if kind == "far":  # compile once for this mesh (the warm-up above compiled for another Occluders object)
-                    self.render(s, f"warm-up {lens} far mesh (cached loading)", samples=w, method="exact")
-                else:
-                    self.render(s, f"warm-up {lens} enclosing mesh (cached loading)", samples=w, method="exact")
-                rec, img, _ = self.renders(s, f"{lens} {kind} mesh", seeds_red, samples=n, method="exact")
-            traces = sum(r["step_traces"] for r in rec)
-            self.choice_row(lens, f"occlusion skip ({kind} mesh)", f"{kind} mesh (ray cast)", "no geometry", rec, base_r, compare_paired(img, base_i),
-                            notes=f"blocks {blocked[kind]:.2%}; render loop {median(rec, 'render_seconds'):.2f} -> {median(base_r, 'render_seconds'):.2f} s"
-                            + (f"; the mesh render re-traced the step {traces}x" if traces else ""))
-            del img
         # as shipped: every render of a scene with geometry loads the mesh anew and re-compiles the step
-        shipped, img, _ = self.renders(scene_far, f"{lens} far mesh, as shipped", seeds_red[:1], samples=n, method="exact")
-        self.choice_row(lens, "occlusion skip (as shipped)", "far mesh (reload + recompile)", "no geometry", shipped, base_r,
-                        compare_paired(img, base_i[:1]), notes=f"first batch (compile) {shipped[0]['compile_seconds']:.1f} s, "
-                        f"step traced {shipped[0]['step_traces']}x in this render")
+        rec, img, _ = self.renders(scene_far, f"{lens} far mesh (as shipped)", seeds_red, samples=n, method="exact")
+        self.choice_row(lens, "occlusion skip (far mesh)", "far mesh (as shipped)", "no geometry", rec, base_r, compare_paired(img, base_i),
+                        notes=f"blocks {blocked['far']:.2%}; each mesh render re-compiles the step (first batch "
+                        f"{median(rec, 'compile_seconds'):.1f} s, {sum(r['step_traces'] for r in rec)} traces in {len(rec)} renders); "
+                        f"render loop {median(rec, 'render_seconds'):.2f} -> {median(base_r, 'render_seconds'):.2f} s")
+        del img
+        with CachedOccluderLoading():  # one compile, then the timed renders measure the ray casts
+            self.render(scene_enc, f"warm-up {lens} enclosing mesh", samples=w, method="exact")
+            rec, img, _ = self.renders(scene_enc, f"{lens} enclosing mesh", seeds_red, samples=n, method="exact")
+        traces = sum(r["step_traces"] for r in rec)
+        self.choice_row(lens, "occlusion skip (enclosing mesh)", "enclosing mesh (cached load)", "no geometry", rec, base_r, compare_paired(img, base_i),
+                        notes=f"blocks {blocked['enclosing']:.2%}; every segment cast (Embree), mesh loaded once; render loop "
+                        f"{median(rec, 'render_seconds'):.2f} -> {median(base_r, 'render_seconds'):.2f} s"
+                        + (f"; step traced {traces}x" if traces else ""))
+        del img
         self.field_angle(lens, scene, base_s[0])
 
     def field_angle(self, lens_name: str, scene, stats) -> None:
@@ -543,9 +555,10 @@ class SamplingBench:
         paths = [p for p, _ in rank_ghost_paths(render_lens)[: cfg["field_paths"]]]
         self.log(f"\n-- field angle, {lens_name}: degree {cfg['field_degree']} path systems of {paths}, tolerance {tolerance * 1e3:.1f} um "
                  f"(1 px); lights' field {stats['field_angle_deg']:.2f} deg -> domain {lights:g} deg, half field of view {full:.2f} deg")
-        t0 = time.perf_counter()  # compiles the fit and validation code for this lens and degree
-        jaxflare.path_system(geometry_lens, paths[0], degree=cfg["field_degree"], max_field_angle_deg=lights, tolerance_mm=tolerance, cache=False, seed=7)
-        self.log(f"  warm-up build (seed 7, not counted): {time.perf_counter() - t0:.2f} s")
+        for angle in (lights, full):  # compiles the fit and validation code for this lens, degree and domain
+            t0 = time.perf_counter()
+            jaxflare.path_system(geometry_lens, paths[0], degree=cfg["field_degree"], max_field_angle_deg=angle, tolerance_mm=tolerance, cache=False, seed=7)
+            self.log(f"  warm-up build at {angle:.1f} deg (seed 7, not counted): {time.perf_counter() - t0:.2f} s")
         results = {}
         for label, angle in (("full field", full), ("lights' field", lights)):
             reports = []
@@ -629,13 +642,12 @@ def _convergence_png(bench: SamplingBench, meta: dict) -> bytes:
     labels = {"demo": "demo scene (Biotar f/2.8)", "geometry_dirt": "demo + occluding plate + dirt map"}
     styles = {"uniform": ("C0", "o"), "adaptive": ("C1", "s"), "auto": ("C2", "^")}
     for ax, scene in zip(axes[0], scenes, strict=False):
-        for mode in MODES:
+        for mode, (sampling, method) in MODES.items():
             pts = [r for r in bench.convergence_rows if r["scene"] == scene and r["mode"] == mode
                    and math.isfinite(r["relative_rmse"]) and r["median_seconds"] > 0]
             if not pts:
                 continue
             colour, marker = styles[mode]
-            sampling, method = MODES[mode]
             ax.plot([p["median_seconds"] for p in pts], [p["relative_rmse"] for p in pts], marker + "-", color=colour,
                     label=f"{mode} (sampling {sampling}, method {method})")
             for p in pts:
@@ -717,7 +729,7 @@ def write_outputs(bench: SamplingBench, meta: dict, out_dir: Path, log) -> list[
     def chart(name: str, fn):
         try:
             put(name, fn(bench, meta))
-        except Exception as error:  # a chart failure must not lose the numbers
+        except Exception as error:  # noqa: BLE001  (a chart failure must not lose the numbers)
             log(f"chart {name} not written: {type(error).__name__}: {error}")
             traceback.print_exc()
 
@@ -773,7 +785,7 @@ def summary_text(bench: SamplingBench) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="smoke test: 320x180, 2^14-2^16 samples, 3 ghost paths; writes to a temporary folder")
+    parser.add_argument("--quick", action="store_true", help="smoke test: 320x180, 2^15-2^17 samples, the 3 strongest ghost paths, Biotar only; writes to a temporary folder")
     parser.add_argument("--no-convergence", action="store_true", help="skip part 1 (convergence charts)")
     parser.add_argument("--no-choices", action="store_true", help="skip part 2 (model-choice table)")
     parser.add_argument("--lenses", nargs="+", help="lenses of part 2 (default zeiss_biotar tronnier_heliar)")

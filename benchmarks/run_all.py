@@ -4,7 +4,8 @@ Usage:  python benchmarks/run_all.py [--quick] [--only NAME ...] [--list] [-- ex
 
 Benchmarks (``--only`` takes the name with or without ``bench_``): ``polynomial`` (path-system error
 against throughput), ``render`` (demo-scene render times and noise against the paper's budgets),
-``trace`` (exact-trace throughput against optiland).
+``sampling`` (noise against time per sampling mode; time saved and error of each modelling
+shortcut), ``trace`` (exact-trace throughput against optiland).
 
 Convention for a benchmark module ``benchmarks/bench_<name>.py``:
 

@@ -203,14 +203,12 @@ def _records(setup: RenderSetup, connections: Connections, path, traced, weight,
 
 def record_values(
     records: SampleRecords, lights: LightArrays, spectral, path_fresnel: Array, path_tint: Array, dirt: Array | None,
-    front_radius_mm, light_rgb_scale: Array | None = None,
+    front_radius_mm,
 ) -> Array:
     """RGB value (N, 3) of each recorded sample for the given light colours, coatings (on-axis
     Fresnel factor per path and wavelength), tints and dirt map: equation (2). Differentiable in all
     of them; zero where the sample did not hit."""
     rgb = light_rgb(lights, spectral, records.light, records.wavelength_nm)
-    if light_rgb_scale is not None:  # (NL, 3) multipliers of each light's colour x intensity
-        rgb = rgb * light_rgb_scale[records.light]
     if records.exact_throughput is None:
         fresnel = interpolate_rows(path_fresnel, records.path, spectral.wavelength_nm, records.wavelength_nm)
     else:

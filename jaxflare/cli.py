@@ -5,6 +5,7 @@
     jaxflare lens plot NAME -o OUT.png      cross-section with primary rays and a ghost path
     jaxflare lens convert IN OUT            between the jaxflare TOML format and Zemax .zmx
     jaxflare render SCENE.toml -o OUT.exr   render a scene's flares to a multi-layer EXR (--png: preview)
+    jaxflare fit PLATE --scene S -o F.json  fit coating colours / dirt / light gains to a plate
     jaxflare demo [--out DIR]               the demo: lens table, cross-section, demo scene render
 """
 
@@ -76,7 +77,7 @@ def _lens_info(name: str, zoom: int, top: int) -> str:
     return "\n".join(lines)
 
 
-def _demo(out_dir: str) -> int:
+def _demo(out_dir: str, samples: int | None = None) -> int:
     from ._load import bundled_lens_names
     from ._plot import save_cross_section
     from ._scene import demo_scene_path
@@ -88,7 +89,7 @@ def _demo(out_dir: str) -> int:
     png = save_cross_section(lens, os.path.join(out_dir, "cross_section.png"))
     print(f"\nwrote {os.path.abspath(png)}")
     print(f"\nRendering the demo scene {demo_scene_path()}")
-    return _render(demo_scene_path(), os.path.join(out_dir, "demo.exr"), None, 0, True, None, None)
+    return _render(demo_scene_path(), os.path.join(out_dir, "demo.exr"), None, 0, True, samples, None)
 
 
 def _render(scene_path: str, output: str, quality, seed: int, png: bool, samples, method) -> int:
@@ -145,8 +146,22 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--samples", type=int, default=None, help="total Monte Carlo samples (default: the quality's)")
     render.add_argument("--method", choices=["auto", "polynomial", "exact"], default=None, help="path evaluation (default: the scene's)")
 
+    fit = commands.add_parser("fit", help="fit coating colours, dirt and light gains to a plate (package fitting)")
+    fit.add_argument("plate", help="plate image: EXR (any layer), 16-bit PNG or TIFF, linear")
+    fit.add_argument("--scene", required=True, help="scene TOML that matches the plate")
+    fit.add_argument("-o", "--output", required=True, help="fitted parameters .json (dirt map and renders are written beside it)")
+    fit.add_argument("--params", default="coatings,dirt", help="comma-separated subset of coatings,dirt,lights (default coatings,dirt)")
+    fit.add_argument("--solver", default=None, help="levenberg-marquardt (default), gauss-newton or bfgs")
+    fit.add_argument("--layer", default=None, help="EXR layer of the plate (default: the default layer)")
+    fit.add_argument("--mask", default=None, help="mask image: 1 where the plate shows flare to fit, 0 to ignore")
+    fit.add_argument("--samples", type=int, default=2**19, help="fixed render samples (default 2^19)")
+    fit.add_argument("--seed", type=int, default=0)
+    fit.add_argument("--dirt-resolution", type=int, default=16, help="dirt map cells per side (default 16)")
+    fit.add_argument("--max-steps", type=int, default=100)
+
     demo = commands.add_parser("demo", help="run the demo")
     demo.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
+    demo.add_argument("--samples", type=int, default=None, help="render samples (default: the demo scene's preview quality)")
     return parser
 
 
@@ -168,7 +183,9 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         if args.command == "demo":
-            return _demo(args.out)
+            return _demo(args.out, args.samples)
+        if args.command == "fit":
+            return _fit(args)
         if args.command == "render":
             return _render(args.scene, args.output, args.quality, args.seed, args.png, args.samples, args.method)
         if args.lens_command == "list":
@@ -188,6 +205,30 @@ def main(argv: list[str] | None = None) -> int:
         message = error.args[0] if isinstance(error, KeyError) and error.args else error
         print(f"jaxflare: error: {message}", file=sys.stderr)
         return 2
+
+
+def _fit(args) -> int:
+    import fitting
+
+    from ._scene import load_scene
+
+    scene = load_scene(args.scene)
+    params = tuple(p.strip() for p in args.params.split(",") if p.strip())
+    if not args.output.lower().endswith(".json"):
+        raise ValueError(f"-o/--output must end in .json, got {args.output!r}")
+    plate = fitting.load_plate(args.plate, layer=args.layer, mask=args.mask, expected_size=tuple(scene.camera.resolution))
+
+    def report(step, loss):
+        print(f"  step {step:>4}  loss {loss:.6g}", file=sys.stderr)
+
+    result = fitting.fit(
+        scene, plate, params=params, solver=args.solver or fitting.DEFAULT_SOLVER, samples=args.samples, seed=args.seed,
+        dirt_resolution=args.dirt_resolution, max_steps=args.max_steps, progress=report,
+    )
+    path = fitting.save_fit(result, args.output)
+    print(f"wrote {os.path.abspath(path)}")
+    print(f"{result.solver}: {result.status} after {result.steps} steps in {result.seconds:.1f} s; loss {result.loss_history[0]:.6g} -> {min(result.loss_history):.6g}")
+    return 0 if result.converged else 1
 
 
 def _convert(source: str, target: str) -> None:

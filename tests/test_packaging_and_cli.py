@@ -55,7 +55,8 @@ def test_lens_plot_and_convert(tmp_path, capsys):
 
 
 def test_demo_writes_cross_section(tmp_path, capsys):
-    assert main(["demo", "--out", str(tmp_path)]) == 0
+    assert main(["demo", "--out", str(tmp_path), "--samples", "100000"]) == 0
     out = capsys.readouterr().out
     assert "Bundled lenses:" in out and "cross_section.png" in out
     assert (tmp_path / "cross_section.png").stat().st_size > 10_000
+    assert (tmp_path / "demo.exr").exists() and (tmp_path / "demo.png").exists() and "demo.exr" in out

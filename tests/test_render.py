@@ -297,14 +297,14 @@ def test_polynomial_method_agrees_with_exact_tracing(tmp_path, monkeypatch):
     to within their Monte Carlo noise (two seeds each: the methods draw different samples)."""
     monkeypatch.setenv("JAXFLARE_CACHE_DIR", str(tmp_path))
     light = jf.Light(kind="directional", direction=(0.03, 0.01, -1.0))
-    scene = make_scene(light, f_number=4.0, resolution=(96, 64))
-    paths = [(4, 2), (2, 0)]
+    scene = make_scene(light, f_number=4.0, resolution=(96, 64), render=dict(quality="production", samples=2**17))
+    paths = [(4, 2)]
     exact = [jf.render(scene, samples=2**17, method="exact", paths=paths, seed=s) for s in (19, 20)]
     poly = [jf.render(scene, samples=2**17, method="polynomial", paths=paths, seed=s) for s in (19, 20)]
     auto = jf.render(scene, samples=2**17, method="auto", paths=paths, seed=19)
-    assert poly[0].statistics["polynomial_paths"] == 3 and poly[0].statistics["unevaluated_fraction"] < 0.01
-    assert auto.statistics["polynomial_paths"] + auto.statistics["exact_paths"] == 3
-    for name in ("flare_04_02", "flare_02_00", "core"):
+    assert poly[0].statistics["polynomial_paths"] == 2 and poly[0].statistics["unevaluated_fraction"] < 0.01
+    assert auto.statistics["polynomial_paths"] + auto.statistics["exact_paths"] == 2
+    for name in ("flare_04_02", "core"):
         e = [r.layers[name] for r in exact]
         p = [r.layers[name] for r in poly]
         noise = abs(e[0].sum() - e[1].sum()) + abs(p[0].sum() - p[1].sum())
