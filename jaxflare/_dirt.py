@@ -52,6 +52,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._bilinear import bilinear
+
 __all__ = ["DIRT_FORMATS", "dirt_transmission", "load_dirt_map"]
 
 _PILLOW_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
@@ -170,18 +172,7 @@ def _check_map(dirt_map: Array) -> Array:
 
 
 def _bilinear_clamped(image: Array, column: Array, row: Array) -> Array:
-    """``image`` (H, W, C) at continuous pixel coordinates (centres at integer + 0.5), clamped to
-    the outermost pixel centres. Returns (..., C); linear in ``image``."""
-    height, width = image.shape[:2]
-    u = jnp.clip(column - 0.5, 0.0, width - 1.0)
-    v = jnp.clip(row - 0.5, 0.0, height - 1.0)
-    i0 = jnp.clip(jnp.floor(u), 0, width - 2).astype(jnp.int32)
-    j0 = jnp.clip(jnp.floor(v), 0, height - 2).astype(jnp.int32)
-    fu = (u - i0)[..., None]
-    fv = (v - j0)[..., None]
-    top = image[j0, i0] * (1 - fu) + image[j0, i0 + 1] * fu
-    bottom = image[j0 + 1, i0] * (1 - fu) + image[j0 + 1, i0 + 1] * fu
-    return top * (1 - fv) + bottom * fv
+    return bilinear(image, column, row, extend_edges=False)
 
 
 def dirt_transmission(

@@ -67,6 +67,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._bilinear import bilinear
+
 __all__ = ["BrownConrady", "distort", "identity_st_map", "load_st_map", "st_map_distort"]
 
 _EXR_MAGIC = b"\x76\x2f\x31\x01"
@@ -198,19 +200,7 @@ def load_st_map(path: str | os.PathLike) -> np.ndarray:
 
 
 def _bilinear_edge_extended(image: Array, column: Array, row: Array) -> Array:
-    """``image`` (H, W, C) at continuous pixel coordinates (centres at integer + 0.5). Positions are
-    clamped to the image ``[0, W] x [0, H]``; in the outer half pixel the border cell's bilinear
-    function is extended (so a linear map, the identity included, is exact up to the edges)."""
-    height, width = image.shape[:2]
-    u = jnp.clip(column, 0.0, width) - 0.5
-    v = jnp.clip(row, 0.0, height) - 0.5
-    i0 = jnp.clip(jnp.floor(u), 0, width - 2).astype(jnp.int32)
-    j0 = jnp.clip(jnp.floor(v), 0, height - 2).astype(jnp.int32)
-    fu = (u - i0)[..., None]
-    fv = (v - j0)[..., None]
-    top = image[j0, i0] * (1 - fu) + image[j0, i0 + 1] * fu
-    bottom = image[j0 + 1, i0] * (1 - fu) + image[j0 + 1, i0 + 1] * fu
-    return top * (1 - fv) + bottom * fv
+    return bilinear(image, column, row, extend_edges=True)
 
 
 def st_map_distort(
