@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
-from typing import Literal
 
 import equinox as eqx
 import jax.numpy as jnp

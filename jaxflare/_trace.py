@@ -12,7 +12,6 @@ values, and every square root and division is guarded so that values *and gradie
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 
 import equinox as eqx
 import jax

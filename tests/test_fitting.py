@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-import jaxflare as jf
 import fitting
+import jaxflare as jf
 from fitting._forward import fixed_samples, render_image
 
 jax = pytest.importorskip("jax")
