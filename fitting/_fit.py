@@ -126,6 +126,7 @@ def fit(
     max_steps: int = 100,
     rtol: float = 1e-6,
     atol: float = 1e-9,
+    block: int = 1,
     fixed: FixedSamples | None = None,
     progress: Callable[[int, float], None] | None = None,
 ) -> FitResult:
@@ -134,7 +135,10 @@ def fit(
     The others stay at their start values (tints 1, a clean lens, gains 1). ``samples`` fixed
     samples (drawn with ``seed``) make the render a smooth function of the parameters. A solver
     that does not converge in ``max_steps`` still returns its best parameters, with ``converged``
-    False and its ``status``. ``progress(step, loss)`` is called after each step.
+    False and its ``status``. ``progress(step, loss)`` is called after each step. ``block`` > 1
+    compares block averages of ``block`` x ``block`` pixels (weighted by the plate's weights):
+    ghosts are smooth and Monte Carlo noise is not, so this keeps a fit to a plate made with other
+    samples (or a photograph) from fitting noise.
     """
     unknown = [p for p in params if p not in PARAMETERS]
     if unknown or not params:
@@ -155,15 +159,22 @@ def fit(
             tint_logits="coatings" in params, dirt_logits=None if start.dirt_logits is None else "dirt" in params, light_log_gain="lights" in params,
         )
         free, frozen = eqx.partition(start, free_mask, is_leaf=lambda x: x is None)
-        target = jnp.asarray(plate.rgb, jnp.float64)
+        if not (isinstance(block, int) and block >= 1 and width % block == 0 and height % block == 0):
+            raise ValueError(f"block must be a positive integer dividing the resolution {width} x {height}, got {block!r}")
         weight = jnp.asarray(plate.weight, jnp.float64)[..., None]
+
+        def pooled(image):  # weighted block averages
+            shape = (height // block, block, width // block, block, image.shape[-1])
+            return (image * weight).reshape(shape).sum(axis=(1, 3))
+
+        target = pooled(jnp.asarray(plate.rgb, jnp.float64))
         prior = jnp.asarray(dirt_prior, jnp.float64)
 
         def residuals(free_params, _):
             parameters = eqx.combine(free_params, frozen, is_leaf=lambda x: x is None)
             tints, dirt, gain = parameters.values()
             image = render_image(samples_, tints, dirt, gain)
-            parts = [((image - target) * weight).ravel()]
+            parts = [(pooled(image) - target).ravel() / block]
             if dirt is not None and "dirt" in params:
                 parts.append(math.sqrt(dirt_prior_weight) * (dirt - prior).ravel())
             if "coatings" in params:
