@@ -268,6 +268,22 @@ def _adaptive_sets(lens, paths, exact_paths, lights: LightArrays, rays_per_path:
     return tuple(sets)
 
 
+_OCCLUDER_CACHE: dict = {}
+
+
+def _cached_occluders(files, transform_bytes, load, transforms):
+    """Loaded meshes, reused while the files are unchanged: the render step is compiled for its
+    occluders (a static field), so reloading them would recompile every render."""
+    import os
+
+    key = (files, transform_bytes, tuple(os.stat(f).st_mtime_ns if os.path.exists(f) else None for f in files))
+    if key not in _OCCLUDER_CACHE:
+        if len(_OCCLUDER_CACHE) > 8:
+            _OCCLUDER_CACHE.clear()
+        _OCCLUDER_CACHE[key] = load(list(files), transforms=list(transforms))
+    return _OCCLUDER_CACHE[key]
+
+
 def _scene_effects(scene: Scene, lens: Lens, pitch_mm: float) -> SceneEffects:
     """Dirt, hood, occluding geometry and distortion of a scene, loaded (errors name the key)."""
     from ._scene import SceneError
@@ -294,7 +310,7 @@ def _scene_effects(scene: Scene, lens: Lens, pitch_mm: float) -> SceneEffects:
             place = np.eye(4) if mesh.transform is None else np.asarray(mesh.transform, np.float64)
             transforms.append(place @ np.diag([mesh.scale, mesh.scale, mesh.scale, 1.0]))
         try:
-            effects["occluders"] = load_occluders([mesh.file for mesh in scene.geometry], transforms=transforms)
+            effects["occluders"] = _cached_occluders(tuple(mesh.file for mesh in scene.geometry), tuple(t.tobytes() for t in transforms), load_occluders, transforms)
         except (OSError, ValueError) as error:
             raise SceneError(f"geometry: {error}") from None
         effects["camera_position_m"] = jnp.asarray(camera.position_m, jnp.float32)

@@ -128,3 +128,14 @@ def test_distortion_moves_the_flare_with_its_source():
     f_px = jf.load_lens("zeiss_biotar").focal_length() / plain.statistics["pixel_pitch_mm"]
     x = (core_x(plain) - 48.0) / f_px
     assert core_x(barrel) - 48.0 == pytest.approx(f_px * x * (1 + k1 * x * x), abs=0.1)
+
+
+def test_renders_with_the_same_geometry_compile_once(tmp_path):
+    from jaxflare import _render_step
+
+    light = jf.Light(kind="directional", direction=(0.05, 0.0, -1.0))
+    mesh = plate(tmp_path, "far", ((5.0, 5.0), (6.0, 6.0)), -4.0)
+    jf.render(scene(light, [mesh]), samples=2**13, paths=PATHS, seed=1)
+    before = _render_step.STEP_TRACES[0]
+    jf.render(scene(light, [mesh]), samples=2**13, paths=PATHS, seed=2)
+    assert _render_step.STEP_TRACES[0] == before
