@@ -22,7 +22,7 @@ TRUE_TINTS[4] = (0.5, 0.9, 1.2)
 
 @pytest.fixture(scope="module")
 def samples():
-    return fixed_samples(SCENE, samples=2**15, seed=1)
+    return fixed_samples(SCENE, samples=2**14, seed=1)
 
 
 def synthetic_plate(samples, tints=TRUE_TINTS, dirt=None):
@@ -32,7 +32,7 @@ def synthetic_plate(samples, tints=TRUE_TINTS, dirt=None):
 
 def test_forward_model_reproduces_the_renderer(samples):
     image = render_image(samples, jnp.ones((10, 3)), None)
-    render = jf.render(SCENE, samples=2**15, seed=1)
+    render = jf.render(SCENE, samples=2**14, seed=1)
     np.testing.assert_allclose(np.asarray(image), render.image[..., :3], rtol=1e-5, atol=1e-6)
 
 
@@ -84,7 +84,7 @@ def test_fitted_parameters_round_trip_into_the_renderer(samples, tmp_path):
     result = fitting.fit(SCENE, plate, params=("coatings", "lights"), fixed=samples, tint_prior_weight=1e-10, max_steps=100)
     path = fitting.save_fit(result, tmp_path / "fitted.json")
     refit = fitting.apply_fit(SCENE, path)
-    rendered = jf.render(refit, samples=2**15, seed=1)
+    rendered = jf.render(refit, samples=2**14, seed=1)
     np.testing.assert_allclose(rendered.image[..., :3], result.render, rtol=1e-3, atol=1e-4 * result.render.max())
     layers, _ = jf.read_exr(tmp_path / "fitted_render.exr")
     assert "residual" in layers
@@ -100,7 +100,7 @@ def test_fit_command(samples, tmp_path, capsys):
     )
     plate = synthetic_plate(samples)
     fitting.save_plate(tmp_path / "plate.exr", plate.rgb)
-    code = main(["fit", str(tmp_path / "plate.exr"), "--scene", str(scene_file), "-o", str(tmp_path / "fit.json"), "--params", "coatings", "--samples", str(2**15), "--seed", "1", "--max-steps", "30"])
+    code = main(["fit", str(tmp_path / "plate.exr"), "--scene", str(scene_file), "-o", str(tmp_path / "fit.json"), "--params", "coatings", "--samples", str(2**14), "--seed", "1", "--max-steps", "30"])
     out = capsys.readouterr()
     assert code in (0, 1) and "wrote" in out.out and "step" in out.err
     import json
