@@ -25,9 +25,10 @@ paths plus the core), rendered with ``jaxflare.render`` in this process. Every r
    2^22 samples (the last is the preview above), saved as a log-log chart with a 1/sqrt(t) guide.
 7. **method="auto"** at 720p preview (seed 0) with ``JAXFLARE_CACHE_DIR`` pointing at a fresh
    temporary folder (the polynomial path systems are built: ``setup_seconds``), then again with
-   that cache warm; how many paths ended up polynomial or exact, and (same seed, same paths: the
-   renderer draws the same samples per path whatever the method) the relative difference of the
-   auto image from the exact seed-0 preview.
+   that cache warm; how many paths ended up polynomial or exact, and the relative difference of the
+   auto image from the exact seed-0 preview. (Since adaptive sampling, the methods draw different
+   samples for the same seed, so this difference includes Monte Carlo noise: compare it with the
+   seed-to-seed noise, not with 0.)
 
 **Noise.** All on the combined flare RGB, ``result.image[..., :3]`` (every flare layer, *not* the
 ``core`` layer: the light's own image is not a flare), as a whole-image norm ||x||^2 = sum over

@@ -1,7 +1,7 @@
 """Occlusion of light-to-lens connections: scene meshes (ray cast on the host) and lens hoods (JAX).
 
 A flare sample connects a point on a light with a point on the front lens (see
-:func:`jaxflare._render._sample_rays`). Anything between the two (a wall, a tree, a matte box)
+:func:`jaxflare._lights.sample_connections`). Anything between the two (a wall, a tree, a matte box)
 blocks that sample: its weight gets a factor 0. Visibility is a fixed 0/1 factor per sample, so
 fitting (gradients with respect to colours, powers and lens parameters that do not move the
 blocking edge) works unchanged; the visibility itself has no useful gradient and none is taken.
