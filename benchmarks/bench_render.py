@@ -78,7 +78,7 @@ for _p in (str(REPO), str(HERE)):
     if _p not in sys.path:
         sys.path.insert(0, _p)
 
-from bench_trace import _finite_or_null, _json_default, load_average, machine_info, machine_string
+from bench_trace import _finite_or_null, _json_default, announce, load_average
 
 from jaxflare._io import write_bytes_atomic
 
@@ -588,14 +588,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import jaxflare
 
-    info = machine_info()
-    machine = machine_string(info)
-    info["load_average_start"] = load_average()
-    log(f"bench_render ({'quick' if args.quick else 'full'}): {machine}")
-    log(f"  devices: {', '.join(info['jax_devices'])}")
-    cpus = info.get("usable_cpus") or info["cpu_count"] or 1
-    if info["load_average_start"] is not None and info["load_average_start"] > 0.25 * cpus:
-        log(f"  WARNING: 1-minute load average {info['load_average_start']:.2f} on {cpus} CPUs: timings will be pessimistic and noisy")
+    info, machine = announce("bench_render", args.quick, log)
     if jax.config.jax_enable_x64:
         log("  WARNING: jax_enable_x64 is on; renders are float32 regardless, but other set-up work may be slower")
     log(f"  output folder: {out_dir}")

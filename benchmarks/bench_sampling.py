@@ -108,7 +108,7 @@ for _p in (str(REPO), str(HERE)):
         sys.path.insert(0, _p)
 
 from bench_render import _fmt, median, relative, render_once, seed_noise, sq_norm, with_resolution
-from bench_trace import _finite_or_null, _json_default, load_average, machine_info, machine_string
+from bench_trace import _finite_or_null, _json_default, announce, load_average
 
 from jaxflare._io import write_bytes_atomic
 
@@ -804,14 +804,8 @@ def main(argv: list[str] | None = None) -> int:
     started = time.perf_counter()
     import jaxflare
 
-    info = machine_info()
-    machine = machine_string(info)
-    info["load_average_start"] = load_average()
-    log(f"bench_sampling ({'quick' if args.quick else 'full'}): {machine}")
-    log(f"  devices: {', '.join(info['jax_devices'])}")
+    info, machine = announce("bench_sampling", args.quick, log)
     cpus = info.get("usable_cpus") or info["cpu_count"] or 1
-    if info["load_average_start"] is not None and info["load_average_start"] > 0.25 * cpus:
-        log(f"  WARNING: 1-minute load average {info['load_average_start']:.2f} on {cpus} CPUs: timings will be pessimistic and noisy")
     log(f"  output folder: {out_dir}")
     work = Path(tempfile.mkdtemp(prefix="jaxflare_bench_sampling_inputs_"))
     try:

@@ -120,6 +120,20 @@ def machine_string(info: dict) -> str:
     )
 
 
+def announce(name: str, quick: bool, log) -> tuple[dict, str]:
+    """Print a benchmark's header (machine, devices, a warning when the CPUs are already busy,
+    the output folder) and return the machine description (dict and one line)."""
+    info = machine_info()
+    machine = machine_string(info)
+    info["load_average_start"] = load_average()
+    log(f"{name} ({'quick' if quick else 'full'}): {machine}")
+    log(f"  devices: {', '.join(info['jax_devices'])}")
+    cpus = info.get("usable_cpus") or info["cpu_count"] or 1
+    if info["load_average_start"] is not None and info["load_average_start"] > 0.25 * cpus:
+        log(f"  WARNING: 1-minute load average {info['load_average_start']:.2f} on {cpus} CPUs: timings will be pessimistic and noisy")
+    return info, machine
+
+
 def timed(fn, repeats: int):
     """(median seconds, all times, last result) of ``repeats`` calls of ``fn`` (which blocks)."""
     times, result = [], None
