@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from jaxflare._render import prepare_render
+from jaxflare._render import prepare_render, radiance_scale
 from jaxflare._render_step import SampleRecords, _splat, batch_records, record_values
 
 
@@ -49,9 +49,7 @@ def fixed_samples(scene, *, samples: int = 2**20, seed: int = 0, method: str = "
     # one SampleRecords for everything: concatenate over batches and path sets
     flat = [records for batch in batches for records in batch]
     records = jax.tree.map(lambda *xs: jnp.concatenate(xs), *[_without_index(r) for r in flat])
-    pitch = prepared.pitch
-    f_number = prepared.lens.f_number()
-    to_radiance = 4.0 * f_number**2 / np.pi / (pitch * pitch) / prepared.batches
+    to_radiance = radiance_scale(prepared.lens, prepared.pitch) / prepared.batches
     interfaces = np.array([p if p is not None else (-1, -1) for p in prepared.paths_all], np.int32)
     return FixedSamples(
         records=records, setup=setup, path_interfaces=jnp.asarray(interfaces), flare=jnp.asarray([p is not None for p in prepared.paths_all]),

@@ -170,6 +170,12 @@ class RenderResult:
         return os.fspath(path)
 
 
+def radiance_scale(lens: Lens, pitch_mm: float) -> float:
+    """Pixel value per unit of splatted flux: the camera equation ``E = pi L / (4 N^2)`` solved for
+    the scene radiance L, over the pixel area (N: the lens's working f-number)."""
+    return 4.0 * lens.f_number() ** 2 / math.pi / (pitch_mm * pitch_mm)
+
+
 def _field_angle_deg(lights: LightArrays, front_radius_mm: float) -> float:
     """Largest angle to the axis of any ray from the flare lights to the front lens (degrees)."""
     axis = np.asarray(lights.axis)
@@ -271,16 +277,18 @@ def _adaptive_sets(lens, paths, exact_paths, lights: LightArrays, rays_per_path:
 _OCCLUDER_CACHE: dict = {}
 
 
-def _cached_occluders(files, transform_bytes, load, transforms):
+def _cached_occluders(files: list[str], transforms: list[np.ndarray]):
     """Loaded meshes, reused while the files are unchanged: the render step is compiled for its
     occluders (a static field), so reloading them would recompile every render."""
     import os
 
-    key = (files, transform_bytes, tuple(os.stat(f).st_mtime_ns if os.path.exists(f) else None for f in files))
+    from ._occlusion import load_occluders
+
+    key = (tuple(files), tuple(t.tobytes() for t in transforms), tuple(os.stat(f).st_mtime_ns if os.path.exists(f) else None for f in files))
     if key not in _OCCLUDER_CACHE:
         if len(_OCCLUDER_CACHE) > 8:
             _OCCLUDER_CACHE.clear()
-        _OCCLUDER_CACHE[key] = load(list(files), transforms=list(transforms))
+        _OCCLUDER_CACHE[key] = load_occluders(files, transforms=transforms)
     return _OCCLUDER_CACHE[key]
 
 
@@ -303,14 +311,12 @@ def _scene_effects(scene: Scene, lens: Lens, pitch_mm: float) -> SceneEffects:
         hood = camera.hood
         effects["hood"] = Hood(hood.shape, hood.distance_mm, hood.radius_mm, hood.half_width_mm, hood.half_height_mm)
     if scene.geometry:
-        from ._occlusion import load_occluders
-
         transforms = []
         for mesh in scene.geometry:
             place = np.eye(4) if mesh.transform is None else np.asarray(mesh.transform, np.float64)
             transforms.append(place @ np.diag([mesh.scale, mesh.scale, mesh.scale, 1.0]))
         try:
-            effects["occluders"] = _cached_occluders(tuple(mesh.file for mesh in scene.geometry), tuple(t.tobytes() for t in transforms), load_occluders, transforms)
+            effects["occluders"] = _cached_occluders([mesh.file for mesh in scene.geometry], transforms)
         except (OSError, ValueError) as error:
             raise SceneError(f"geometry: {error}") from None
         effects["camera_position_m"] = jnp.asarray(camera.position_m, jnp.float32)
@@ -584,7 +590,7 @@ def render(
 
     # normalisation: mean over batches, per unit pixel area, as camera-equation radiance
     f_number = lens.f_number()
-    to_radiance = 4.0 * f_number**2 / math.pi / (pitch * pitch)
+    to_radiance = radiance_scale(lens, pitch)
     scale = np.full(num_layers, to_radiance / batches)
     flare_scale = scale[0]
     if settings.weights == "sensor-hits":

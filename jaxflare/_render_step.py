@@ -203,12 +203,14 @@ def _records(setup: RenderSetup, connections: Connections, path, traced, weight,
 
 def record_values(
     records: SampleRecords, lights: LightArrays, spectral, path_fresnel: Array, path_tint: Array, dirt: Array | None,
-    front_radius_mm,
+    front_radius_mm, rgb: Array | None = None,
 ) -> Array:
     """RGB value (N, 3) of each recorded sample for the given light colours, coatings (on-axis
     Fresnel factor per path and wavelength), tints and dirt map: equation (2). Differentiable in all
-    of them; zero where the sample did not hit."""
-    rgb = light_rgb(lights, spectral, records.light, records.wavelength_nm)
+    of them; zero where the sample did not hit. ``rgb``: each sample's light colour at its
+    wavelength (:func:`jaxflare._lights.light_rgb`), when the caller has it already."""
+    if rgb is None:
+        rgb = light_rgb(lights, spectral, records.light, records.wavelength_nm)
     if records.exact_throughput is None:
         fresnel = interpolate_rows(path_fresnel, records.path, spectral.wavelength_nm, records.wavelength_nm)
     else:
@@ -298,15 +300,17 @@ def render_step(setup: RenderSetup, acc: Accumulators, key: Array) -> Accumulato
     batch_luminance = jnp.zeros((1, height, width, 1), jnp.float32)
     adaptive_count = len(setup.adaptive)
     for k, records in enumerate(batch_records(setup, key)):
+        colour = light_rgb(setup.lights, setup.spectral, records.light, records.wavelength_nm)
         value = record_values(
             records, setup.lights, setup.spectral, setup.path_fresnel, setup.path_tint, setup.effects.dirt, setup.front.radius_mm,
+            rgb=colour,
         ).astype(jnp.float32)
         path, hit = records.path, records.hit
         layer = setup.path_layer[path]
         flare = setup.path_is_flare[path] & hit
         lum = value @ luminance_weights
         # light entering the front disc (before the lens path), for the culling bound
-        incoming = (light_rgb(setup.lights, setup.spectral, records.light, records.wavelength_nm) @ luminance_weights) * records.geometry
+        incoming = (colour @ luminance_weights) * records.geometry
         is_flare = setup.path_is_flare[path] & setup.path_enabled[path]
         acc = eqx.tree_at(
             lambda a: (a.layers, a.path_energy, a.path_incoming, a.path_hits, a.path_passed, a.path_unevaluated, a.path_samples, a.weight_all, a.weight_hits),
