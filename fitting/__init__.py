@@ -6,24 +6,42 @@ reference flare image with optimistix, through jaxflare's differentiable rendere
     jaxflare.render(fitting.apply_fit(scene, "fitted.json"))
 """
 
-from ._fit import DEFAULT_SOLVER, DIRT_PRIOR, PARAMETERS, SOLVERS, FitResult, FlareParameters, apply_fit, fit, save_fit
-from ._forward import FixedSamples, fixed_samples, render_image
+from ._fit import (
+    DEFAULT_SOLVER,
+    DIRT_PRIOR,
+    MODELS,
+    OBSERVABLE_STD,
+    PARAMETERS,
+    SOLVERS,
+    FitResult,
+    FlareParameters,
+    apply_fit,
+    fit,
+    save_fit,
+)
+from ._forward import FixedSamples, PathImages, fixed_samples, flare_render, path_image_model, path_images, render_image
 from ._plate import Plate, PlateQuantisationWarning, load_plate, save_plate
 
 __all__ = [
     "DEFAULT_SOLVER",
     "DIRT_PRIOR",
+    "MODELS",
+    "OBSERVABLE_STD",
     "PARAMETERS",
     "SOLVERS",
     "FitResult",
     "FixedSamples",
     "FlareParameters",
+    "PathImages",
     "Plate",
     "PlateQuantisationWarning",
     "apply_fit",
     "fit",
     "fixed_samples",
+    "flare_render",
     "load_plate",
+    "path_image_model",
+    "path_images",
     "render_image",
     "save_fit",
     "save_plate",

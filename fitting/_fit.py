@@ -29,7 +29,22 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
-from ._forward import FixedSamples, as_float64, fixed_samples, render_image
+from jaxflare import ghost_paths
+
+from ._forward import (
+    PATH_IMAGE_BYTES,
+    FixedSamples,
+    PathImages,
+    as_float64,
+    fixed_samples,
+    flare_render,
+    path_image_model,
+    path_images,
+    path_images_bytes,
+    render_image,
+    reweighted,
+    scene_interface_tints,
+)
 from ._plate import Plate
 
 PARAMETERS = ("coatings", "dirt", "lights")
@@ -61,22 +76,28 @@ def _logit(x, upper=1.0):
     return np.log(x) - np.log1p(-x)
 
 
-def initial_parameters(samples: FixedSamples, *, tints=None, dirt=None, dirt_resolution: int = 16, light_gain=None) -> FlareParameters:
-    """Start values: tints 1, the dirt prior (a clean lens), gains 1."""
-    num_lights = samples.setup.lights.kind.shape[0]
-    tints = np.ones((samples.num_interfaces, 3)) if tints is None else np.asarray(tints, np.float64)
-    if dirt is None:
-        dirt = np.full((dirt_resolution, dirt_resolution, 1), DIRT_PRIOR)
+def initial_parameters(num_interfaces: int, num_lights: int, *, tints=None, dirt=None, light_gain=None) -> FlareParameters:
+    """Start values: tints 1 (or ``tints``), no dirt map (or ``dirt``), gains 1 (or ``light_gain``)."""
+    tints = np.ones((num_interfaces, 3)) if tints is None else np.asarray(tints, np.float64)
     gains = np.ones((num_lights, 3)) if light_gain is None else np.asarray(light_gain, np.float64)
     return FlareParameters(
-        tint_logits=jnp.asarray(_logit(tints, TINT_MAX)), dirt_logits=jnp.asarray(_logit(dirt)), light_log_gain=jnp.asarray(np.log(gains)),
+        tint_logits=jnp.asarray(_logit(tints, TINT_MAX)), dirt_logits=None if dirt is None else jnp.asarray(_logit(dirt)),
+        light_log_gain=jnp.asarray(np.log(gains)),
     )
+
+
+OBSERVABLE_STD = 0.1
+"""A tint or gain whose standard error is above this is reported as not observable in the plate."""
+MODELS = ("auto", "path-images", "samples")
+"""Forward models: per-path images (coatings and lights only: fast, many samples) or the samples
+themselves (needed for dirt); ``auto`` picks path images whenever it can."""
+DEFAULT_SAMPLES = {"path-images": 2**22, "samples": 2**19}
 
 
 @dataclasses.dataclass
 class FitResult:
     """A finished fit: the physical parameters, the solver's verdict, the loss per step, the
-    rendered flare and the residual, and timings."""
+    rendered flare and the residual, standard errors, and timings."""
 
     coating_tints: np.ndarray
     dirt: np.ndarray | None
@@ -89,14 +110,34 @@ class FitResult:
     loss_history: list[float]
     seconds: float
     render: np.ndarray
+    """The flare (every flare path, not the lights' own images) with the fitted parameters, at the
+    plate's resolution, from the fit's samples."""
     residual: np.ndarray
+    """``render - plate`` (unweighted; 0 where the plate's weight is 0)."""
+    model: str = "samples"
+    samples: int = 0
+    block: int = 1
+    tint_std: np.ndarray | None = None
+    """Standard error of each fitted interface tint (I, 3), from the Jacobian and the residual
+    scatter; above :data:`OBSERVABLE_STD` the plate does not determine that tint (it stays near its
+    prior). None when coatings were not fitted."""
+    light_gain_std: np.ndarray | None = None
+    dirt_sensitivity: np.ndarray | None = None
+    """How much each dirt-map cell changes the flare, relative to the most sensitive cell (0: the
+    flare never lights it, so it keeps its prior)."""
 
     def as_dict(self) -> dict:
-        return dict(
-            fitted=list(self.fitted), solver=self.solver, converged=self.converged, status=self.status, steps=self.steps,
-            loss_history=self.loss_history, seconds=self.seconds, coating_tints=self.coating_tints.tolist(),
-            light_gain=self.light_gain.tolist(), dirt_shape=None if self.dirt is None else list(self.dirt.shape),
-        )
+        def listed(x):
+            return None if x is None else np.where(np.isfinite(x), x, -1.0).tolist()
+
+        return {
+            "fitted": list(self.fitted), "solver": self.solver, "model": self.model, "samples": self.samples, "block": self.block,
+            "converged": self.converged, "status": self.status, "steps": self.steps, "loss_history": self.loss_history, "seconds": self.seconds,
+            "coating_tints": self.coating_tints.tolist(), "coating_tint_std": listed(self.tint_std),
+            "observable_interfaces": None if self.tint_std is None else [int(k) for k in np.flatnonzero(np.all(self.tint_std < OBSERVABLE_STD, axis=1))],
+            "light_gain": self.light_gain.tolist(), "light_gain_std": listed(self.light_gain_std),
+            "dirt_shape": None if self.dirt is None else list(self.dirt.shape),
+        }
 
 
 def _solver(name: str, rtol: float, atol: float):
@@ -110,15 +151,33 @@ def _solver(name: str, rtol: float, atol: float):
     return optx.BFGS(rtol=rtol, atol=atol)
 
 
+def _choose_model(model: str, params, scene, block: int, paths) -> str:
+    if model not in MODELS:
+        raise ValueError(f"model must be one of {', '.join(MODELS)}, got {model!r}")
+    if model == "path-images" and "dirt" in params:
+        raise ValueError("model='path-images' cannot fit the dirt map (the flare is not a sum of fixed images in it): use model='samples'")
+    if model != "auto":
+        return model
+    if "dirt" in params:
+        return "samples"
+    from jaxflare._scene import camera_lens
+
+    num_paths = len(ghost_paths(camera_lens(scene.camera))) if paths is None else len(paths)
+    size = path_images_bytes(scene, num_paths, per_light_colour="lights" in params, block=block)
+    return "path-images" if size <= PATH_IMAGE_BYTES else "samples"
+
+
 def fit(
     scene,
     plate: Plate,
     *,
     params: Sequence[str] = ("coatings", "dirt"),
     solver: str = DEFAULT_SOLVER,
-    samples: int = 2**19,
+    model: str = "auto",
+    samples: int | None = None,
     seed: int = 0,
     method: str = "exact",
+    paths: Sequence[tuple[int, int]] | None = None,
     dirt_resolution: int = 16,
     dirt_prior: float = DIRT_PRIOR,
     dirt_prior_weight: float = 1e-3,
@@ -127,22 +186,35 @@ def fit(
     rtol: float = 1e-6,
     atol: float = 1e-9,
     block: int = 1,
-    fixed: FixedSamples | None = None,
+    fixed: FixedSamples | PathImages | None = None,
     progress: Callable[[int, float], None] | None = None,
 ) -> FitResult:
     """Fit ``params`` (any of :data:`PARAMETERS`) of ``scene`` so its flare render matches ``plate``.
 
-    The others stay at their start values (tints 1, a clean lens, gains 1). ``samples`` fixed
-    samples (drawn with ``seed``) make the render a smooth function of the parameters. A solver
-    that does not converge in ``max_steps`` still returns its best parameters, with ``converged``
-    False and its ``status``. ``progress(step, loss)`` is called after each step. ``block`` > 1
-    compares block averages of ``block`` x ``block`` pixels (weighted by the plate's weights):
-    ghosts are smooth and Monte Carlo noise is not, so this keeps a fit to a plate made with other
-    samples (or a photograph) from fitting noise.
+    The others keep the scene's values (its ``coating_tints``, its dirt map, gains 1); fitted
+    tints start from the scene's, the dirt map from ``dirt_prior`` (a clean lens). The loss is
+    ``0.5 |w (render - plate)|^2 / |w plate|^2`` (``w``: the plate's weights, block-summed) plus
+    the priors ``0.5 dirt_prior_weight |dirt - dirt_prior|^2`` and ``0.5 tint_prior_weight
+    |tints - 1|^2``: relative to the plate's light, so the prior weights do not depend on units.
+
+    ``model``: ``"path-images"`` renders each flare path once with ``samples`` samples (default
+    2**22) and fits their tinted sum (coatings and lights only; fast, and its Monte Carlo noise,
+    which biases a least-squares fit towards dimmer tints, is small); ``"samples"`` keeps the
+    ``samples`` samples (default 2**19) themselves, which the dirt map needs; ``"auto"`` picks
+    path images when it can. ``block`` > 1 compares sums over ``block`` x ``block`` pixels:
+    ghosts are smooth and Monte Carlo noise is not, so this keeps a fit to a plate with its own
+    noise from fitting noise. ``fixed``: samples or path images made earlier (tests, benchmarks).
+    ``method``: how samples are traced (``"exact"``, ``"polynomial"``, ``"auto"``), as in
+    :func:`jaxflare.render`; ``paths``: only these ghost paths (default: all).
+
+    A solver that does not converge in ``max_steps`` still returns its best parameters, with
+    ``converged`` False and its ``status``; so does one that diverges. ``progress(step, loss)``
+    is called after each step.
     """
     unknown = [p for p in params if p not in PARAMETERS]
     if unknown or not params:
         raise ValueError(f"params must be a non-empty subset of {', '.join(PARAMETERS)}, got {list(params)!r}")
+    params = tuple(p for p in PARAMETERS if p in params)
     started = time.perf_counter()
     width, height = scene.camera.resolution
     if plate.rgb.shape[:2] != (height, width):
@@ -150,88 +222,170 @@ def fit(
             f"plate {plate.source}: {plate.rgb.shape[1]} x {plate.rgb.shape[0]} pixels, but the scene renders "
             f"{width} x {height} (camera.resolution): they must match"
         )
-    with jax.enable_x64(True):
-        samples_ = as_float64(fixed if fixed is not None else fixed_samples(scene, samples=samples, seed=seed, method=method))
-        start = initial_parameters(samples_, dirt=np.full((dirt_resolution, dirt_resolution, 1), dirt_prior), dirt_resolution=dirt_resolution)
-        if "dirt" not in params:
-            start = dataclasses.replace(start, dirt_logits=None)
-        free_mask = FlareParameters(
-            tint_logits="coatings" in params, dirt_logits=None if start.dirt_logits is None else "dirt" in params, light_log_gain="lights" in params,
+    if not (isinstance(block, int) and block >= 1 and width % block == 0 and height % block == 0):
+        raise ValueError(f"block must be a positive integer dividing the resolution {width} x {height}, got {block!r}")
+    _solver(solver, rtol, atol)  # a bad solver name fails before any rendering
+    if fixed is not None:
+        model = "path-images" if isinstance(fixed, PathImages) else "samples"
+    model = _choose_model(model, params, scene, block, paths)
+    if fixed is not None:
+        samples = fixed.samples if isinstance(fixed, PathImages) else int(fixed.records.path.shape[0])
+    elif samples is None:
+        samples = DEFAULT_SAMPLES[model]
+    if fixed is None and model == "path-images":
+        fixed = path_images(
+            scene, samples=samples, seed=seed, method=method, pixel_weight=plate.weight, block=block, per_light_colour="lights" in params, paths=paths,
         )
+    elif fixed is None:
+        fixed = fixed_samples(scene, samples=samples, seed=seed, method=method, paths=paths)
+    if isinstance(fixed, PathImages) and fixed.resolution != (width, height):
+        raise ValueError(f"the path images given were made at {fixed.resolution[0]} x {fixed.resolution[1]}, not {width} x {height}")
+    if isinstance(fixed, PathImages) and fixed.full_images is not None:  # weight and sum blocks for this plate
+        fixed = reweighted(fixed, plate.weight, block)
+    elif isinstance(fixed, PathImages) and fixed.block != block:
+        raise ValueError(f"the path images given were made for block {fixed.block} (without full-resolution images), not block {block}")
+    with jax.enable_x64(True):
+        forward = as_float64(fixed)
+        num_interfaces = forward.num_interfaces
+        num_lights = forward.num_lights if isinstance(forward, PathImages) else int(forward.setup.lights.kind.shape[0])
+        scene_tints = np.clip(scene_interface_tints(scene, num_interfaces), 1e-3, TINT_MAX - 1e-3)
+        start = initial_parameters(
+            num_interfaces, num_lights, tints=scene_tints, dirt=np.full((dirt_resolution, dirt_resolution, 1), dirt_prior) if "dirt" in params else None,
+        )
+        free_mask = FlareParameters(tint_logits="coatings" in params, dirt_logits=None if start.dirt_logits is None else True, light_log_gain="lights" in params)
         free, frozen = eqx.partition(start, free_mask, is_leaf=lambda x: x is None)
-        if not (isinstance(block, int) and block >= 1 and width % block == 0 and height % block == 0):
-            raise ValueError(f"block must be a positive integer dividing the resolution {width} x {height}, got {block!r}")
         weight = jnp.asarray(plate.weight, jnp.float64)[..., None]
 
-        def pooled(image):  # weighted block averages
+        def pooled(image):  # weighted block sums
             shape = (height // block, block, width // block, block, image.shape[-1])
             return (image * weight).reshape(shape).sum(axis=(1, 3))
 
-        target = pooled(jnp.asarray(plate.rgb, jnp.float64))
+        target = pooled(jnp.asarray(np.where(plate.weight[..., None] > 0, plate.rgb, 0.0), jnp.float64))
+        target_norm = float(jnp.sqrt(jnp.sum(target**2)))
+        if not target_norm > 0:
+            raise ValueError(f"plate {plate.source}: no light where its weight is non-zero (the plate is black under the mask): nothing to fit")
         prior = jnp.asarray(dirt_prior, jnp.float64)
 
+        def model_image(tints, dirt, gain):
+            if isinstance(forward, PathImages):
+                return path_image_model(forward, tints, gain if "lights" in params else None)
+            return pooled(render_image(forward, tints, dirt, gain))
+
+        def data_residuals(tints, dirt, gain):
+            return (model_image(tints, dirt, gain) - target).ravel() / target_norm
+
         def residuals(free_params, _):
-            parameters = eqx.combine(free_params, frozen, is_leaf=lambda x: x is None)
-            tints, dirt, gain = parameters.values()
-            image = render_image(samples_, tints, dirt, gain)
-            parts = [(pooled(image) - target).ravel() / block]
-            if dirt is not None and "dirt" in params:
+            tints, dirt, gain = eqx.combine(free_params, frozen, is_leaf=lambda x: x is None).values()
+            parts = [data_residuals(tints, dirt, gain)]
+            if "dirt" in params:
                 parts.append(math.sqrt(dirt_prior_weight) * (dirt - prior).ravel())
             if "coatings" in params:
                 parts.append(math.sqrt(tint_prior_weight) * (tints - 1.0).ravel())
             return jnp.concatenate(parts)
 
-        chosen = _solver(solver, rtol, atol)
-        least_squares = solver != "bfgs"
-        fn = residuals if least_squares else (lambda y, a: 0.5 * jnp.sum(residuals(y, a) ** 2))
-        # run the solver step by step to report the loss as it goes (optimistix's init/step/terminate)
-        options = {}
-        f_struct = jax.eval_shape(lambda y: fn(y, None), free)
-        aux_struct = None
-        tags = frozenset()
-
-        def loss_of(y):
-            r = residuals(y, None)
-            return 0.5 * jnp.sum(r**2)
-
-        loss_jit = eqx.filter_jit(loss_of)
-        state = chosen.init(_fn_aux(fn), free, None, options, f_struct, aux_struct, tags)
-        step = eqx.filter_jit(lambda y, s: chosen.step(_fn_aux(fn), y, None, options, s, tags))
-        terminate = eqx.filter_jit(lambda y, s: chosen.terminate(_fn_aux(fn), y, None, options, s, tags))
-        y = free
-        history = [float(loss_jit(y))]
-        best, best_loss = y, history[0]
-        done, result = False, optx.RESULTS.successful
-        steps, diverged = 0, None
-        for steps in range(1, max_steps + 1):
-            y, state, _ = step(y, state)
-            loss = float(loss_jit(y))
-            if not math.isfinite(loss):  # a diverging step: stop, keep the best parameters, say so
-                diverged = steps
-                break
-            history.append(loss)
-            if loss <= best_loss:
-                best, best_loss = y, loss
-            if progress is not None:
-                progress(steps, loss)
-            done, result = terminate(y, state)
-            if bool(done):
-                break
-        converged = diverged is None and bool(done) and bool(result == optx.RESULTS.successful)
-        if diverged is not None:
-            status = f"diverged at step {diverged} (non-finite loss): returned the best parameters, from step {history.index(best_loss)}"
-        elif converged:
-            status = "converged"
+        best, history, steps, converged, status = _solve(residuals, free, solver, rtol, atol, max_steps, progress)
+        tints, dirt, gain = eqx.combine(best, frozen, is_leaf=lambda x: x is None).values()
+        tint_std, gain_std = _standard_errors(data_residuals, tints, dirt, gain, params)
+        sensitivity = None
+        if "dirt" in params:
+            grad = jax.grad(lambda d: jnp.sum(model_image(tints, d, gain)))(dirt)
+            sensitivity = np.abs(np.asarray(grad))
+            sensitivity = sensitivity / max(float(sensitivity.max()), 1e-300)
+        tints, gain = np.asarray(tints), np.asarray(gain)
+        dirt = None if dirt is None else np.asarray(dirt)
+        if isinstance(forward, PathImages) and forward.full_images is not None:
+            image = np.asarray(path_image_model(forward, jnp.asarray(tints), jnp.asarray(gain) if "lights" in params else None, full=True))
+        elif isinstance(forward, PathImages):
+            image = flare_render(
+                scene, tints, gain, samples=fixed.samples, seed=fixed.seed, method=fixed.method, quality=fixed.quality, paths=fixed.paths,
+            )
         else:
-            status = f"stopped: {optx.RESULTS[result]}" if bool(done) else f"not converged in {max_steps} steps"
-        parameters = eqx.combine(best, frozen, is_leaf=lambda x: x is None)
-        tints, dirt, gain = parameters.values()
-        image = np.asarray(render_image(samples_, tints, dirt, gain))
+            image = np.asarray(render_image(forward, jnp.asarray(tints), None if dirt is None else jnp.asarray(dirt), jnp.asarray(gain)))
+    residual = np.where(plate.weight[..., None] > 0, image - plate.rgb, 0.0)
     return FitResult(
-        coating_tints=np.asarray(tints), dirt=None if dirt is None else np.asarray(dirt), light_gain=np.asarray(gain), fitted=tuple(params),
-        solver=solver, converged=converged, status=status, steps=steps, loss_history=history, seconds=time.perf_counter() - started,
-        render=image, residual=image - plate.rgb,
+        coating_tints=tints, dirt=dirt, light_gain=gain, fitted=params, solver=solver, converged=converged, status=status, steps=steps,
+        loss_history=history, seconds=time.perf_counter() - started, render=image, residual=residual, model=model, samples=samples,
+        block=block, tint_std=tint_std, light_gain_std=gain_std, dirt_sensitivity=sensitivity,
     )
+
+
+def _solve(residuals, free, solver: str, rtol: float, atol: float, max_steps: int, progress):
+    """Run the solver step by step through optimistix's init/step/terminate, so the loss is known
+    (and reported) at every step; keep the best parameters; stop on a non-finite loss."""
+    chosen = _solver(solver, rtol, atol)
+    fn = residuals if solver != "bfgs" else (lambda y, a: 0.5 * jnp.sum(residuals(y, a) ** 2))
+    options, tags = {}, frozenset()
+    f_struct = jax.eval_shape(lambda y: fn(y, None), free)
+    loss_jit = eqx.filter_jit(lambda y: 0.5 * jnp.sum(residuals(y, None) ** 2))
+    state = chosen.init(_fn_aux(fn), free, None, options, f_struct, None, tags)
+    step = eqx.filter_jit(lambda y, s: chosen.step(_fn_aux(fn), y, None, options, s, tags))
+    terminate = eqx.filter_jit(lambda y, s: chosen.terminate(_fn_aux(fn), y, None, options, s, tags))
+    y = free
+    history = [float(loss_jit(y))]
+    best, best_loss = y, history[0]
+    done, result = False, optx.RESULTS.successful
+    steps, diverged = 0, None
+    for steps in range(1, max_steps + 1):
+        y, state, _ = step(y, state)
+        loss = float(loss_jit(y))
+        if not math.isfinite(loss):  # a diverging step: stop, keep the best parameters, say so
+            diverged = steps
+            break
+        history.append(loss)
+        if loss <= best_loss:
+            best, best_loss = y, loss
+        if progress is not None:
+            progress(steps, loss)
+        done, result = terminate(y, state)
+        if bool(done):
+            break
+    converged = diverged is None and bool(done) and bool(result == optx.RESULTS.successful)
+    if diverged is not None:
+        status = f"diverged at step {diverged} (non-finite loss): returned the best parameters, from step {history.index(best_loss)}"
+    elif converged:
+        status = "converged"
+    else:
+        status = f"stopped: {optx.RESULTS[result]}" if bool(done) else f"not converged in {max_steps} steps"
+    return best, history, steps, converged, status
+
+
+def _standard_errors(data_residuals, tints, dirt, gain, params):
+    """Standard errors of the fitted tints and gains: ``s^2 (J^T J)^-1`` with the Jacobian of the
+    data residuals in the physical parameters and ``s^2`` their mean square (pixels taken as
+    independent). Directions the plate does not constrain get infinite errors."""
+    names = [n for n in ("coatings", "lights") if n in params]
+    if not names:
+        return None, None
+    values = {"coatings": tints, "lights": gain}
+    flat = jnp.concatenate([values[n].ravel() for n in names])
+    sizes = [values[n].size for n in names]
+
+    def unflatten(x):
+        parts = dict(zip(names, jnp.split(x, np.cumsum(sizes)[:-1])))
+        return parts.get("coatings", tints.ravel()).reshape(tints.shape), parts.get("lights", gain.ravel()).reshape(gain.shape)
+
+    residual_at = lambda x: data_residuals(*_with(unflatten(x), dirt))
+    r = residual_at(flat)
+    basis = jnp.eye(flat.size, dtype=flat.dtype)
+    columns = jax.lax.map(lambda e: jax.jvp(residual_at, (flat,), (e,))[1], basis)  # (p, n): memory p x n only
+    normal = np.asarray(columns @ columns.T)
+    dof = max(int(r.size) - flat.size, 1)
+    scatter = float(jnp.sum(r**2)) / dof
+    eigenvalues, eigenvectors = np.linalg.eigh(normal)
+    floor = 1e-12 * max(float(eigenvalues.max()), 1e-300)
+    inverse_eigen = np.where(eigenvalues > floor, 1.0 / np.maximum(eigenvalues, floor), np.inf)
+    with np.errstate(invalid="ignore"):
+        variance = np.nansum(np.where(eigenvectors**2 > 1e-12, eigenvectors**2 * inverse_eigen, 0.0), axis=1) * scatter
+    std = np.sqrt(variance)
+    parts = dict(zip(names, np.split(std, np.cumsum(sizes)[:-1])))
+    tint_std = parts["coatings"].reshape(tints.shape) if "coatings" in parts else None
+    gain_std = parts["lights"].reshape(gain.shape) if "lights" in parts else None
+    return tint_std, gain_std
+
+
+def _with(tints_gain, dirt):
+    tints, gain = tints_gain
+    return tints, dirt, gain
 
 
 def _fn_aux(fn):

@@ -38,24 +38,252 @@ class FixedSamples(eqx.Module):
     num_interfaces: int = eqx.field(static=True)
 
 
-def fixed_samples(scene, *, samples: int = 2**20, seed: int = 0, method: str = "exact", quality: str = "preview") -> FixedSamples:
-    """Draw and trace ``samples`` samples of ``scene`` once (in float32, as a render does)."""
-    prepared = prepare_render(scene, quality, seed, samples=samples, method=method)
-    setup = prepared.setup
+def _fit_scene(scene):
+    """The scene as a fit samples it: no culling, since a fit may brighten any path (tints up to
+    :data:`fitting._fit.TINT_MAX`), so every path keeps its samples."""
+    from jaxflare._scene import load_scene
+
+    scene = load_scene(scene) if isinstance(scene, (str, bytes)) or hasattr(scene, "__fspath__") else scene
+    return dataclasses.replace(scene, render=dataclasses.replace(scene.render, cull_threshold=0.0))
+
+
+def _batches(scene, samples: int, seed: int, method: str, quality: str, paths=None):
+    """The render's preparation and a generator of its batches' sample records (one list per
+    batch): the same samples :func:`jaxflare.render` draws for this seed (and these ``paths``)."""
+    prepared = prepare_render(_fit_scene(scene), quality, seed, samples=samples, method=method, paths=paths)
     draw = eqx.filter_jit(batch_records)
-    batches = []
-    for b in range(prepared.batches):
-        batches.append(draw(setup, jax.random.fold_in(jax.random.fold_in(prepared.key, 2), b)))
-    # one SampleRecords for everything: concatenate over batches and path sets
-    flat = [records for batch in batches for records in batch]
-    records = jax.tree.map(lambda *xs: jnp.concatenate(xs), *[_without_index(r) for r in flat])
-    to_radiance = radiance_scale(prepared.lens, prepared.pitch) / prepared.batches
-    interfaces = np.array([p if p is not None else (-1, -1) for p in prepared.paths_all], np.int32)
+
+    def batches():
+        for b in range(prepared.batches):
+            yield [_without_index(r) for r in draw(prepared.setup, jax.random.fold_in(jax.random.fold_in(prepared.key, 2), b))]
+
+    return prepared, batches
+
+
+def _path_interfaces(prepared) -> np.ndarray:
+    return np.array([p if p is not None else (-1, -1) for p in prepared.paths_all], np.int32)
+
+
+def scene_interface_tints(scene, num_interfaces: int) -> np.ndarray:
+    """The camera's ``coating_tints`` as an ``(I, 3)`` array (1 where none is set)."""
+    tints = np.ones((num_interfaces, 3))
+    for interface, rgb in scene.camera.coating_tints:
+        tints[interface] = rgb
+    return tints
+
+
+def fixed_samples(scene, *, samples: int = 2**20, seed: int = 0, method: str = "exact", quality: str = "preview", paths=None) -> FixedSamples:
+    """Draw and trace ``samples`` samples of ``scene`` once (in float32, as a render does). The
+    records of every sample are kept, so memory grows with ``samples`` (about 60 bytes each)."""
+    prepared, batches = _batches(scene, samples, seed, method, quality, paths)
+    flat = [records for batch in batches() for records in batch]
+    records = jax.tree.map(lambda *xs: jnp.concatenate(xs), *flat)
     return FixedSamples(
-        records=records, setup=setup, path_interfaces=jnp.asarray(interfaces), flare=jnp.asarray([p is not None for p in prepared.paths_all]),
-        to_radiance=jnp.asarray(to_radiance), resolution=tuple(prepared.scene.camera.resolution),
-        num_interfaces=prepared.lens.num_interfaces,
+        records=records, setup=prepared.setup, path_interfaces=jnp.asarray(_path_interfaces(prepared)),
+        flare=jnp.asarray([p is not None for p in prepared.paths_all]), to_radiance=jnp.asarray(_to_radiance(prepared)),
+        resolution=tuple(prepared.scene.camera.resolution), num_interfaces=prepared.lens.num_interfaces,
     )
+
+
+def _to_radiance(prepared) -> float:
+    return radiance_scale(prepared.lens, prepared.pitch) / prepared.batches
+
+
+class PathImages(eqx.Module):
+    """Each flare path's image with unit coating tints, weighted by the plate's pixel weights and
+    summed over ``block`` x ``block`` pixels: with the dirt map fixed the flare is linear in the
+    paths' tints and the lights' gains, so a fit of coatings and lights needs only these images,
+    not the samples (:func:`path_image_model`). Their cost does not grow with the number of
+    samples, so they can be made from many more samples than a fit could carry, which keeps
+    the model's Monte Carlo noise (and the bias it gives a least-squares fit) small."""
+
+    images: Float[Array, "P K Hb Wb 3"]
+    """Per flare path ``P``, per gain basis ``K`` (light k, input channel c: ``K = 3 k + c``, or
+    one basis, every gain 1, when the lights are not fitted)."""
+    full_images: Float[Array, "P K H W 3"] | None
+    """The same, unweighted at full resolution (float32), when they fit in
+    :data:`FULL_IMAGE_BYTES`: the fit's final render is then their tinted sum."""
+    path_interfaces: Int[Array, "P 2"]
+    block: int = eqx.field(static=True)
+    resolution: tuple[int, int] = eqx.field(static=True)
+    num_interfaces: int = eqx.field(static=True)
+    num_lights: int = eqx.field(static=True)
+    samples: int = eqx.field(static=True)
+    seed: int = eqx.field(static=True)
+    method: str = eqx.field(static=True)
+    quality: str = eqx.field(static=True)
+    paths: tuple | None = eqx.field(static=True)
+    """How they were made: :func:`flare_render` with these draws the same samples."""
+
+
+def _unit_gains(num_lights: int, per_light_colour: bool) -> np.ndarray:
+    if not per_light_colour:
+        return np.ones((1, num_lights, 3))
+    basis = np.zeros((3 * num_lights, num_lights, 3))
+    for k in range(num_lights):
+        for c in range(3):
+            basis[3 * k + c, k, c] = 1.0
+    return basis
+
+
+def _gained_lights(lights, gain):
+    """Light arrays with each light's colour scaled by ``gain`` (NL, 3): RGB lights per channel,
+    spectral lights (a spectrum or a temperature) by the mean gain."""
+    gain = gain.astype(lights.rgb.dtype)
+    return eqx.tree_at(lambda l: (l.rgb, l.spectral_rgb), lights, (lights.rgb * gain, lights.spectral_rgb * jnp.mean(gain, axis=1)[:, None, None]))
+
+
+def _pooled_splat(buffer, layer, column, row, value, keep, pixel_weight, block: int):
+    """Bilinear splat (as the renderer's) straight into ``block`` x ``block`` sums of pixels,
+    each pixel weighted by ``pixel_weight`` (H, W). ``buffer``: (Y, Hb, Wb, 3)."""
+    num_layers, height_b, width_b, channels = buffer.shape
+    height, width = pixel_weight.shape
+    x = column - 0.5
+    y = row - 0.5
+    x0 = jnp.floor(x)
+    y0 = jnp.floor(y)
+    fx = x - x0
+    fy = y - y0
+    flat = buffer.reshape(-1, channels)
+    outside = num_layers * height_b * width_b
+    for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        xi = jnp.clip((x0 + dx).astype(jnp.int32), 0, width - 1)
+        yi = jnp.clip((y0 + dy).astype(jnp.int32), 0, height - 1)
+        index = jnp.where(keep, (layer * height_b + yi // block) * width_b + xi // block, outside)
+        flat = flat.at[index].add((value * (w * pixel_weight[yi, xi])[:, None]).astype(flat.dtype), mode="drop")
+    return flat.reshape(buffer.shape)
+
+
+PATH_IMAGE_BYTES = 2**30
+"""Largest path-image stack (float64) a fit builds; above it the fit uses the samples."""
+FULL_IMAGE_BYTES = 2**27
+"""Largest full-resolution path-image stack (float32) kept for the fit's final render."""
+
+
+def path_images_bytes(scene, num_paths: int, *, per_light_colour: bool, block: int) -> int:
+    width, height = scene.camera.resolution
+    num_lights = sum(1 for light in scene.lights if light.flare)
+    bases = 3 * num_lights if per_light_colour else 1
+    return num_paths * bases * (height // block) * (width // block) * 3 * 8
+
+
+def path_images(
+    scene, *, samples: int = 2**22, seed: int = 0, method: str = "exact", quality: str = "preview",
+    pixel_weight: np.ndarray | None = None, block: int = 1, per_light_colour: bool = False, dirt=None, paths=None,
+) -> PathImages:
+    """Render every flare path's image of ``scene`` (unit tints, the scene's dirt map unless
+    ``dirt`` is given) with ``samples`` samples, batch by batch (memory does not grow with
+    ``samples``), weighted by ``pixel_weight`` and summed over ``block`` x ``block`` pixels.
+    ``per_light_colour``: one image per light and colour channel, so light gains can be fitted.
+    ``paths``: only these ghost paths (default: all of the lens's)."""
+    prepared, batches = _batches(scene, samples, seed, method, quality, paths)
+    setup = prepared.setup
+    width, height = prepared.scene.camera.resolution
+    if height % block or width % block:
+        raise ValueError(f"block must divide the resolution {width} x {height}, got {block}")
+    weight = jnp.ones((height, width), jnp.float32) if pixel_weight is None else jnp.asarray(pixel_weight, jnp.float32)
+    flare_slot = np.full(len(prepared.paths_all), -1, np.int32)
+    flare_paths = [k for k, p in enumerate(prepared.paths_all) if p is not None]
+    flare_slot[flare_paths] = np.arange(len(flare_paths))
+    num_lights = int(setup.lights.kind.shape[0])
+    gains = jnp.asarray(_unit_gains(num_lights, per_light_colour), jnp.float32)
+    dirt = setup.effects.dirt if dirt is None else jnp.asarray(dirt, jnp.float32)
+    ones = jnp.ones_like(setup.path_tint)
+    slot = jnp.asarray(flare_slot)
+
+    @eqx.filter_jit
+    def accumulate(buffer, batch, splat_weight, splat_block):
+        for records in batch:
+            keep = records.hit & (slot[records.path] >= 0)
+            for k in range(gains.shape[0]):
+                lights = _gained_lights(setup.lights, gains[k])
+                values = record_values(records, lights, setup.spectral, setup.path_fresnel, ones, dirt, setup.front.radius_mm)
+                layer = jnp.clip(slot[records.path], 0) * gains.shape[0] + k
+                buffer = _pooled_splat(buffer, layer, records.column, records.row, values, keep, splat_weight, splat_block)
+        return buffer
+
+    num_images = len(flare_paths) * gains.shape[0]
+    keep_full = num_images * height * width * 3 * 4 <= FULL_IMAGE_BYTES
+    if keep_full:  # splat at full resolution, then weight and sum blocks: the full images give the final render
+        splat_weight, splat_block = jnp.ones((height, width), jnp.float32), 1
+    else:
+        splat_weight, splat_block = weight, block
+    buffer = jnp.zeros((num_images, height // splat_block, width // splat_block, 3), jnp.float32)
+    for batch in batches():
+        buffer = accumulate(buffer, batch, splat_weight, splat_block)
+    scale = _to_radiance(prepared)
+    full = None
+    if keep_full:
+        full = np.asarray(buffer).reshape(len(flare_paths), gains.shape[0], height, width, 3) * np.float32(scale)
+        images = _weighted_blocks(full, weight, block)
+    else:
+        images = np.asarray(buffer, np.float64).reshape(len(flare_paths), gains.shape[0], height // block, width // block, 3) * scale
+    return PathImages(
+        images=jnp.asarray(images), full_images=None if full is None else jnp.asarray(full), path_interfaces=jnp.asarray(_path_interfaces(prepared)[flare_paths]), block=block,
+        resolution=(width, height), num_interfaces=prepared.lens.num_interfaces, num_lights=num_lights, samples=samples, seed=seed,
+        method=method, quality=quality, paths=None if paths is None else tuple(tuple(p) for p in paths),
+    )
+
+
+def _weighted_blocks(full, pixel_weight, block: int) -> np.ndarray:
+    num_paths, num_bases, height, width, _ = full.shape
+    weighted = np.asarray(full, np.float64) * np.asarray(pixel_weight, np.float64)[:, :, None]
+    return weighted.reshape(num_paths, num_bases, height // block, block, width // block, block, 3).sum(axis=(3, 5))
+
+
+def reweighted(images: PathImages, pixel_weight, block: int) -> PathImages:
+    """The path images weighted by another plate's ``pixel_weight`` and summed over ``block`` x
+    ``block`` pixels (needs their full-resolution images)."""
+    if images.full_images is None:
+        raise ValueError("these path images keep no full-resolution images, so they cannot be weighted again")
+    width, height = images.resolution
+    if height % block or width % block:
+        raise ValueError(f"block must divide the resolution {width} x {height}, got {block}")
+    pooled = _weighted_blocks(np.asarray(images.full_images), pixel_weight, block)
+    return dataclasses.replace(images, images=jnp.asarray(pooled), block=block)
+
+
+def flare_render(
+    scene, interface_tints, light_gain=None, *, samples: int = 2**22, seed: int = 0, method: str = "exact", quality: str = "preview", dirt=None,
+    paths=None,
+):
+    """The flare image (every flare path) of ``scene`` with the given interface tints and light
+    gains, from the same samples :func:`path_images` uses for this seed, batch by batch."""
+    prepared, batches = _batches(scene, samples, seed, method, quality, paths)
+    setup = prepared.setup
+    width, height = prepared.scene.camera.resolution
+    tints = _path_tints(jnp.asarray(_path_interfaces(prepared)), jnp.asarray(interface_tints, jnp.float32))
+    lights = setup.lights if light_gain is None else _gained_lights(setup.lights, jnp.asarray(light_gain, jnp.float32))
+    dirt = setup.effects.dirt if dirt is None else jnp.asarray(dirt, jnp.float32)
+
+    @eqx.filter_jit
+    def accumulate(buffer, batch):
+        for records in batch:
+            values = record_values(records, lights, setup.spectral, setup.path_fresnel, tints, dirt, setup.front.radius_mm)
+            keep = records.hit & setup.path_is_flare[records.path]
+            buffer = _splat(buffer, jnp.zeros_like(records.path), records.column, records.row, values, keep)
+        return buffer
+
+    buffer = jnp.zeros((1, height, width, 3), jnp.float32)
+    for batch in batches():
+        buffer = accumulate(buffer, batch)
+    return np.asarray(buffer[0], np.float64) * _to_radiance(prepared)
+
+
+def path_image_model(
+    images: PathImages, interface_tints: Float[Array, "I 3"], light_gain: Float[Array, "NL 3"] | None = None, *, full: bool = False,
+):
+    """The weighted, block-summed flare image for the given interface tints and light gains (with
+    ``full``: the unweighted full-resolution image, when the path images keep it)."""
+    tints = _path_tints(images.path_interfaces, interface_tints)
+    stack = images.full_images if full else images.images
+    if stack.shape[1] == 1:
+        per_path = stack[:, 0]
+        if light_gain is not None:
+            raise ValueError("these path images were made without per_light_colour: they cannot fit light gains")
+    else:
+        per_path = jnp.einsum("pkhwc,k->phwc", stack, light_gain.reshape(-1).astype(stack.dtype))
+    return jnp.einsum("phwc,pc->hwc", per_path, tints.astype(per_path.dtype))
 
 
 def _without_index(records: SampleRecords) -> SampleRecords:
@@ -64,7 +292,11 @@ def _without_index(records: SampleRecords) -> SampleRecords:
 
 def path_tints(samples: FixedSamples, interface_tints: Float[Array, "I 3"]) -> Float[Array, "P 3"]:
     """Each path's coating colour: the product of the tints of its two reflecting interfaces."""
-    j, i = samples.path_interfaces[:, 0], samples.path_interfaces[:, 1]
+    return _path_tints(samples.path_interfaces, interface_tints)
+
+
+def _path_tints(path_interfaces, interface_tints):
+    j, i = path_interfaces[:, 0], path_interfaces[:, 1]
     tint = interface_tints[jnp.clip(j, 0)] * interface_tints[jnp.clip(i, 0)]
     return jnp.where((j >= 0)[:, None], tint, 1.0)
 
@@ -78,16 +310,14 @@ def render_image(
     include_core: bool = False,
 ) -> Float[Array, "H W 3"]:
     """The flare image (every flare together; with ``include_core`` also the lights' images) for
-    the given interface tints, dirt map and light gains, in the renderer's pixel units."""
+    the given interface tints, dirt map (None: the scene's own, if it has one) and light gains
+    (scaling each RGB light's colour per channel, a spectral light's brightness by their mean),
+    in the renderer's pixel units."""
     setup = samples.setup
     records = samples.records
     tints = path_tints(samples, interface_tints.astype(records.geometry.dtype))
-    lights = setup.lights
-    if light_gain is not None:  # gains scale each light's colour (RGB lights) or brightness (spectra)
-        gain = light_gain.astype(lights.rgb.dtype)
-        lights = eqx.tree_at(
-            lambda l: (l.rgb, l.spectral_rgb), lights, (lights.rgb * gain, lights.spectral_rgb * jnp.mean(gain, axis=1)[:, None, None])
-        )
+    lights = setup.lights if light_gain is None else _gained_lights(setup.lights, light_gain)
+    dirt = setup.effects.dirt if dirt is None else dirt
     values = record_values(records, lights, setup.spectral, setup.path_fresnel, tints, dirt, setup.front.radius_mm)
     keep = records.hit & (samples.flare[records.path] | include_core)
     width, height = samples.resolution
@@ -96,8 +326,8 @@ def render_image(
     return image * samples.to_radiance.astype(values.dtype)
 
 
-def as_float64(samples: FixedSamples) -> FixedSamples:
-    """The samples with every float array in float64 (fits run in float64; needs jax x64)."""
+def as_float64(samples):
+    """Samples or path images with every float array in float64 (fits run in float64; needs jax x64)."""
     return jax.tree.map(lambda x: x.astype(jnp.float64) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) else x, samples)
 
 

@@ -154,8 +154,11 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--solver", default=None, help="levenberg-marquardt (default), gauss-newton or bfgs")
     fit.add_argument("--layer", default=None, help="EXR layer of the plate (default: the default layer)")
     fit.add_argument("--mask", default=None, help="mask image: 1 where the plate shows flare to fit, 0 to ignore")
-    fit.add_argument("--samples", type=int, default=2**19, help="fixed render samples (default 2^19)")
+    fit.add_argument("--samples", type=int, default=None, help="render samples of the fit's model (default 2^22 with path images, 2^19 with samples)")
     fit.add_argument("--seed", type=int, default=0)
+    fit.add_argument("--model", default="auto", help="auto (default), path-images (coatings and lights only) or samples")
+    fit.add_argument("--method", default="exact", help="how the model's samples are traced: exact (default), polynomial or auto")
+    fit.add_argument("--block", type=int, default=1, help="compare sums over BLOCK x BLOCK pixels (default 1; 4-8 for noisy plates)")
     fit.add_argument("--dirt-resolution", type=int, default=16, help="dirt map cells per side (default 16)")
     fit.add_argument("--max-steps", type=int, default=100)
 
@@ -222,12 +225,17 @@ def _fit(args) -> int:
         print(f"  step {step:>4}  loss {loss:.6g}", file=sys.stderr)
 
     result = fitting.fit(
-        scene, plate, params=params, solver=args.solver or fitting.DEFAULT_SOLVER, samples=args.samples, seed=args.seed,
-        dirt_resolution=args.dirt_resolution, max_steps=args.max_steps, progress=report,
+        scene, plate, params=params, solver=args.solver or fitting.DEFAULT_SOLVER, model=args.model, method=args.method, samples=args.samples,
+        seed=args.seed, block=args.block, dirt_resolution=args.dirt_resolution, max_steps=args.max_steps, progress=report,
     )
     path = fitting.save_fit(result, args.output)
     print(f"wrote {os.path.abspath(path)}")
-    print(f"{result.solver}: {result.status} after {result.steps} steps in {result.seconds:.1f} s; loss {result.loss_history[0]:.6g} -> {min(result.loss_history):.6g}")
+    verdict = result.status if result.converged else f"{result.status} (returned the best parameters)"
+    print(f"{result.solver} on {result.model} ({result.samples} samples): {verdict}, {result.steps} steps in {result.seconds:.1f} s; "
+          f"loss {result.loss_history[0]:.6g} -> {min(result.loss_history):.6g}")
+    if result.tint_std is not None:
+        observable = result.as_dict()["observable_interfaces"]
+        print(f"interfaces the plate determines (tint standard error < {fitting.OBSERVABLE_STD}): {observable or 'none'}")
     return 0 if result.converged else 1
 
 
