@@ -2,15 +2,19 @@
 
 Parameters are bounded by reparametrisation (optimistix has no box constraints): coating tints
 ``t = T_MAX sigmoid(a)`` in [0, T_MAX], dirt ``d = sigmoid(b)`` in [0, 1], light gains
-``g = exp(c)`` > 0. Residuals are ``weight x (render - plate)`` over the pixels (RGB), plus a weak
-prior on the dirt map (``dirt_prior_weight x (d - prior)``) so cells the flare never lights stay
-at their prior instead of drifting, and on the tints towards 1. Solvers (``solver=``):
+``g = exp(c)`` > 0. Residuals are ``weight x (render - plate)`` over the pixels (RGB; optionally
+summed over blocks of pixels), divided by the norm of the weighted plate so the loss is relative,
+plus a weak prior on the dirt map (``dirt_prior_weight x (d - prior)``) so cells the flare never
+lights stay at their prior instead of drifting, and on the tints towards 1. Solvers (``solver=``):
 
 - ``"levenberg-marquardt"`` and ``"gauss-newton"``: least squares with a matrix-free linear solver
   (``lineax.Normal(lineax.CG(...))``), which scales to large dirt maps;
 - ``"bfgs"``: a quasi-Newton minimiser of the sum of squares (dense inverse Hessian: small fits).
 
-The fit runs in float64 with the samples fixed (:mod:`fitting._forward`).
+The fit runs in float64 on a forward model of :mod:`fitting._forward`: per-path images for
+coatings and lights, the fixed samples themselves when the dirt map is fitted. After the solve,
+standard errors of tints and gains come from the Jacobian and the residual scatter, and the dirt
+map's sensitivity says which cells the plate constrains.
 """
 
 from __future__ import annotations

@@ -1,11 +1,19 @@
-"""The differentiable forward model of a fit: a flare render with fixed samples.
+"""The differentiable forward models of a fit: a flare render with fixed samples, or per-path images.
 
 The samples of a render (their light, path, wavelength, front-lens point, pixel position and
 geometric weight) do not depend on what a fit changes -- light colours and intensities, coating
 tints and the front-lens dirt map only scale each sample's value (equation (2) of Pekkarinen &
 Balzer 2019). So the samples are drawn and traced once (common random numbers: the loss is then a
 smooth function of the parameters), and the image is their values splatted with fixed bilinear
-weights: linear in tints, dirt and light gains, differentiable in everything, and fast.
+weights: linear in tints, dirt and light gains, differentiable in everything
+(:func:`fixed_samples`, :func:`render_image`).
+
+With the dirt map fixed, the flare is a sum of per-path images times each path's tint (the
+product of its two reflecting interfaces' tints) and the lights' gains. :func:`path_images`
+renders those images once, batch by batch, so their cost does not grow with the samples and a
+fit of coatings and lights can use many more samples than it could carry as records. That
+matters: a least-squares fit against a model with Monte Carlo noise is biased (the noise adds to
+the model's energy, so tints come out low), and the bias falls as 1/samples.
 """
 
 from __future__ import annotations

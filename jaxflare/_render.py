@@ -116,8 +116,10 @@ class RenderResult:
 
     ``image``: (H, W, 4) linear RGBA of every flare together (alpha = min(1, max(R, G, B)); add the
     RGB to the plate). ``layers``: name -> (H, W, 3): ``core`` (the lights' primary images, not a
-    flare), ``flare_J_I`` per flare with its own layer (ghost path (J, I)), ``flares_merged`` (all
-    other flares). ``statistics``: samples, hit rate, per-path energies, times, settings.
+    flare), ``flare_JJ_II`` per flare with its own layer (ghost path (J, I), two digits each, e.g.
+    ``flare_07_04``), ``flares_merged`` (all other flares); and ``variance`` (H, W, 1), the
+    per-pixel variance of the flare luminance. ``statistics``: samples, hit rate, per-path
+    energies, times, settings.
     """
 
     image: np.ndarray
