@@ -107,16 +107,16 @@ def test_background_under_a_mask_is_ignored_and_without_it_spoils_the_fit(plate_
 
 
 def test_polynomial_model_fits_an_exactly_traced_plate(tmp_path, monkeypatch):
-    """The plate is traced exactly, the fit's path images come from the polynomial path systems:
-    the two paths' colours (products of their interfaces' tints) agree to 8 %."""
+    """The plate is traced exactly, the fit's path images come from the polynomial path system of
+    the brightest ghost: its colour (the product of its interfaces' tints) agrees to 8 %."""
     monkeypatch.setenv("JAXFLARE_CACHE_DIR", str(tmp_path))
     scene = dataclasses.replace(SCENE, camera=dataclasses.replace(SCENE.camera, resolution=(96, 64)),
                                 lights=(jf.Light(kind="directional", direction=(0.03, 0.01, -1.0)),))
-    paths = [(4, 2), (7, 4)]
+    paths = [(7, 4)]
     truth = with_tints(scene, TRUE_TINTS)
-    plate_rgb = jf.render(truth, samples=2**19, seed=7, method="exact", paths=paths).image[..., :3]
+    plate_rgb = jf.render(truth, samples=2**18, seed=7, method="exact", paths=paths).image[..., :3]
     plate = fitting.Plate(rgb=plate_rgb, weight=np.ones(plate_rgb.shape[:2]), source="exact", layer="")
-    result = fitting.fit(scene, plate, params=("coatings",), method="polynomial", paths=paths, samples=2**19, block=BLOCK, max_steps=300)
+    result = fitting.fit(scene, plate, params=("coatings",), method="polynomial", paths=paths, samples=2**18, block=BLOCK, max_steps=300)
     assert result.model == "path-images", result.model
     for j, i in paths:
         np.testing.assert_allclose(result.coating_tints[j] * result.coating_tints[i], TRUE_TINTS[j] * TRUE_TINTS[i], rtol=0.08, atol=0.02)
@@ -130,9 +130,9 @@ def test_dirt_from_a_plate_rendered_with_another_seed(tmp_path):
     truth[1:3, 2:4] = 0.4
     jf.write_exr(tmp_path / "dirt.exr", {"": truth}, pixel_type="float")
     dirty = dataclasses.replace(SCENE, camera=dataclasses.replace(SCENE.camera, dirt_map=str(tmp_path / "dirt.exr")))
-    plate_rgb = jf.render(dirty, samples=2**20, seed=7).image[..., :3]
+    plate_rgb = jf.render(dirty, samples=2**19, seed=7).image[..., :3]
     plate = fitting.Plate(rgb=plate_rgb, weight=np.ones(plate_rgb.shape[:2]), source="dirty", layer="")
-    result = fitting.fit(SCENE, plate, params=("dirt",), samples=2**19, dirt_resolution=4, block=BLOCK, max_steps=60)
+    result = fitting.fit(SCENE, plate, params=("dirt",), samples=2**18, dirt_resolution=4, block=BLOCK, max_steps=40)
     assert result.model == "samples"
     lit = result.dirt_sensitivity[..., 0] > 0.2
     dark = result.dirt_sensitivity[..., 0] == 0.0

@@ -6,7 +6,9 @@ spec whose command is ``python`` with ``sys.executable``), with the notebook fol
 directory, as a user running it from a fresh clone would. The notebook is executed in memory:
 nothing is written back. A failing cell fails the test with that cell's source and traceback.
 
-Run one notebook with ``pytest tests/test_notebooks.py -k quick_start``; add ``-rP`` to see the
+Execution is split over two files (this one and ``test_notebooks_second_half.py``) so the two
+pytest-xdist workers of ``make test`` share it. Run one notebook with
+``pytest tests/test_notebooks.py tests/test_notebooks_second_half.py -k quick_start``; add ``-rP`` to see the
 measured wall time of each notebook (also recorded as the ``wall_seconds`` property, e.g. in
 ``--junitxml`` reports).
 """
@@ -106,8 +108,17 @@ def _files_under(folder: Path) -> set[Path]:
     }
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=IDS)
+FIRST_HALF = NOTEBOOKS[0::2]
+"""Notebooks this file runs; the others run in tests/test_notebooks_second_half.py, so that
+``make test`` (pytest-xdist ``--dist loadfile``: one worker per file) runs the two halves at once."""
+
+
+@pytest.mark.parametrize("path", FIRST_HALF, ids=[path.stem for path in FIRST_HALF])
 def test_notebook_runs(path: Path, record_property):
+    run_notebook(path, record_property)
+
+
+def run_notebook(path: Path, record_property):
     """Execute the notebook top to bottom in a fresh kernel, working directory ``notebooks/``."""
     notebook = nbformat.read(path, as_version=4)
     client = nbclient.NotebookClient(
