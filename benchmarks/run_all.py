@@ -2,7 +2,8 @@
 
 Usage:  python benchmarks/run_all.py [--quick] [--only NAME ...] [--list] [-- extra args for every benchmark]
 
-Benchmarks (``--only`` takes the name with or without ``bench_``): ``polynomial`` (path-system error
+Benchmarks (``--only`` takes the name with or without ``bench_``): ``fitting`` (plate-fitting solvers:
+recovered coatings and dirt against wall time on synthetic plates), ``polynomial`` (path-system error
 against throughput), ``render`` (demo-scene render times and noise against the paper's budgets),
 ``sampling`` (noise against time per sampling mode; time saved and error of each modelling
 shortcut), ``trace`` (exact-trace throughput against optiland).
