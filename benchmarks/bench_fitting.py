@@ -110,7 +110,7 @@ for _p in (str(REPO), str(HERE)):
 from bench_render import _fmt
 from bench_trace import _finite_or_null, _json_default, announce, load_average
 
-from jaxflare._io import write_bytes_atomic
+from jaxflare.io._atomic import write_bytes_atomic
 
 DEFAULT_OUT = HERE / "results"
 STEM = "fitting_solvers"

@@ -73,7 +73,7 @@ for _p in (str(REPO), str(HERE)):
 
 from bench_trace import _finite_or_null, _json_default, load_average, machine_info, machine_string, timed
 
-from jaxflare._io import write_bytes_atomic
+from jaxflare.io._atomic import write_bytes_atomic
 
 DEFAULT_OUT = HERE / "results"
 STEM = "polynomial_accuracy"
@@ -171,7 +171,7 @@ class LensBench:
 
         import jaxflare
         from jaxflare import make_domain
-        from jaxflare._plot import rank_ghost_paths
+        from jaxflare.io._plot import rank_ghost_paths
 
         self.cfg, self.log, self.name = cfg, log, name
         with warnings.catch_warnings():

@@ -110,7 +110,7 @@ for _p in (str(REPO), str(HERE)):
 from bench_render import _fmt, median, relative, render_once, seed_noise, sq_norm, with_resolution
 from bench_trace import _finite_or_null, _json_default, announce, load_average
 
-from jaxflare._io import write_bytes_atomic
+from jaxflare.io._atomic import write_bytes_atomic
 
 DEFAULT_OUT = HERE / "results"
 CONVERGENCE_STEM = "sampling_convergence"
@@ -191,8 +191,8 @@ def light_centre(scene) -> np.ndarray:
 def blocked_fraction(scene, mesh_file: Path, rays: int = 20000, seed: int = 0) -> float:
     """Fraction of light-to-front-lens segments the mesh blocks (uniform points on the sphere light,
     uniform points on the front clear aperture)."""
-    from jaxflare._occlusion import load_occluders
-    from jaxflare._scene import camera_lens
+    from jaxflare.render.effects._occluders import load_occluders
+    from jaxflare.scenes._scene import camera_lens
 
     rng = np.random.default_rng(seed)
     light = scene.lights[0]
@@ -242,7 +242,7 @@ def warm_median(records: list[dict], key: str = "wall_seconds") -> float:
 
 
 class CachedOccluderLoading:
-    """Within the block, ``jaxflare._occlusion.load_occluders`` returns the same ``Occluders`` object
+    """Within the block, ``jaxflare.render.effects._occluders.load_occluders`` returns the same ``Occluders`` object
     for the same files and placement. The renderer loads the meshes on every call, and the render
     step holds them as a static field hashed by identity, so as shipped every render of a scene
     with geometry re-traces and re-compiles the step; with this, only the first one does, and the
@@ -316,8 +316,8 @@ class SamplingBench:
         """``paths=`` of every render: None (all) in the full run, the strongest ghost paths in --quick."""
         if not self.cfg["paths"]:
             return None
-        from jaxflare._plot import rank_ghost_paths
-        from jaxflare._scene import camera_lens
+        from jaxflare.io._plot import rank_ghost_paths
+        from jaxflare.scenes._scene import camera_lens
 
         return [p for p, _ in rank_ghost_paths(camera_lens(scene.camera))[: self.cfg["paths"]]]
 
@@ -541,8 +541,8 @@ class SamplingBench:
 
     def field_angle(self, lens_name: str, scene, stats) -> None:
         import jaxflare
-        from jaxflare._plot import rank_ghost_paths
-        from jaxflare._scene import camera_lens, sensor_size_mm
+        from jaxflare.io._plot import rank_ghost_paths
+        from jaxflare.scenes._scene import camera_lens, sensor_size_mm
 
         cfg = self.cfg
         render_lens = camera_lens(scene.camera)

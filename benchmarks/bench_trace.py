@@ -41,7 +41,7 @@ REPO = HERE.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from jaxflare._io import write_bytes_atomic  # noqa: E402
+from jaxflare.io._atomic import write_bytes_atomic  # noqa: E402
 
 DEFAULT_OUT = HERE / "results"
 STEM = "trace_throughput"

@@ -164,7 +164,7 @@ def _choose_model(model: str, params, scene, block: int, paths) -> str:
         return model
     if "dirt" in params:
         return "samples"
-    from jaxflare._scene import camera_lens
+    from jaxflare.scenes._scene import camera_lens
 
     num_paths = len(ghost_paths(camera_lens(scene.camera))) if paths is None else len(paths)
     size = path_images_bytes(scene, num_paths, per_light_colour="lights" in params, block=block)
@@ -400,8 +400,8 @@ def _fn_aux(fn):
 def save_fit(result: FitResult, path: str | os.PathLike) -> str:
     """Write the fitted parameters as JSON (``path``), the dirt map as ``<stem>_dirt.exr`` beside it,
     and the re-rendered flare and the residual as ``<stem>_render.exr``; all atomically."""
-    from jaxflare._exr import write_exr
-    from jaxflare._io import write_text_atomic
+    from jaxflare.io._exr import write_exr
+    from jaxflare.io._atomic import write_text_atomic
 
     path = os.fspath(path)
     stem = os.path.splitext(path)[0]
@@ -418,7 +418,7 @@ def save_fit(result: FitResult, path: str | os.PathLike) -> str:
 def apply_fit(scene, fitted: str | os.PathLike | dict):
     """The scene with fitted parameters (a JSON file from :func:`save_fit` or its dict) applied:
     coating tints, the dirt map, and light gains (multiplying each light's RGB colour)."""
-    from jaxflare._scene import Light
+    from jaxflare.scenes._scene import Light
 
     if not isinstance(fitted, dict):
         folder = os.path.dirname(os.path.abspath(fitted))

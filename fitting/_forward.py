@@ -26,8 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from jaxflare._render import prepare_render, radiance_scale
-from jaxflare._render_step import SampleRecords, _splat, batch_records, record_values
+from jaxflare.render._render import prepare_render, radiance_scale
+from jaxflare.render._step import SampleRecords, _splat, batch_records, record_values
 
 
 class FixedSamples(eqx.Module):
@@ -35,7 +35,7 @@ class FixedSamples(eqx.Module):
 
     records: SampleRecords
     setup: eqx.Module
-    """The renderer's :class:`jaxflare._render_step.RenderSetup` (lights, spectral tables, lens)."""
+    """The renderer's :class:`jaxflare.render._step.RenderSetup` (lights, spectral tables, lens)."""
     path_interfaces: Int[Array, "P 2"]
     """Reflecting interfaces (j, i) of each path; (-1, -1) for the primary path (the core)."""
     flare: Array
@@ -49,7 +49,7 @@ class FixedSamples(eqx.Module):
 def _fit_scene(scene):
     """The scene as a fit samples it: no culling, since a fit may brighten any path (tints up to
     :data:`fitting._fit.TINT_MAX`), so every path keeps its samples."""
-    from jaxflare._scene import load_scene
+    from jaxflare.scenes._scene import load_scene
 
     scene = load_scene(scene) if isinstance(scene, (str, bytes)) or hasattr(scene, "__fspath__") else scene
     return dataclasses.replace(scene, render=dataclasses.replace(scene.render, cull_threshold=0.0))

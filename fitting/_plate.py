@@ -19,7 +19,7 @@ Anything that is not linear (a JPEG, an sRGB-encoded PNG) must be decoded first;
 
 Files
 -----
-* OpenEXR (``.exr``, via :func:`jaxflare._exr.read_exr`): any layer by name. With ``layer=None`` the
+* OpenEXR (``.exr``, via :func:`jaxflare.io._exr.read_exr`): any layer by name. With ``layer=None`` the
   default layer ``""`` is used, or the only layer if the file has just one; a file with several
   layers and no default one needs ``layer=``. RGB, RGBA (alpha dropped) or Y (grey, broadcast to
   RGB). Values are taken as they are (EXR is linear by convention).
@@ -227,7 +227,7 @@ def _read_pillow(path: str, what: str) -> tuple[np.ndarray, int | None]:
 
 
 def _read_exr_layer(path: str, layer: str | None, what: str) -> tuple[np.ndarray, str]:
-    from jaxflare._exr import read_exr
+    from jaxflare.io._exr import read_exr
 
     try:
         layers, _ = read_exr(path)
@@ -415,7 +415,7 @@ def save_plate(path: str | os.PathLike, rgb: np.ndarray, *, layer: str = "", pix
     EXR plate at ``path`` (float32 by default; ``pixel_type="half"`` for float16), in ``layer``
     ("" = the default layer). Values must be finite. For tests and synthetic plates; read it back
     with :func:`load_plate`."""
-    from jaxflare._exr import write_exr
+    from jaxflare.io._exr import write_exr
 
     array = np.asarray(rgb)
     if array.ndim == 2:

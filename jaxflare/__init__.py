@@ -6,11 +6,11 @@ path systems (:func:`path_system`, :class:`PathSystem`), flare rendering (:func:
 coating presets and the lens file readers and writers.
 """
 
-from ._glass import Glass, UnknownGlassError, find_glass, model_glass, nearest_glass
-from ._lens import Lens, LensWarning, build_lens
-from ._lens_format import lens_toml_text, parse_lens_toml, read_lens_toml
-from ._load import bundled_lens_names, load_lens, read_prescription
-from ._prescription import (
+from jaxflare.optics._glass import Glass, UnknownGlassError, find_glass, model_glass, nearest_glass
+from jaxflare.optics._lens import Lens, LensWarning, build_lens
+from jaxflare.io._lens_toml import lens_toml_text, parse_lens_toml, read_lens_toml
+from jaxflare.io._lens_files import bundled_lens_names, load_lens, read_prescription
+from jaxflare.optics._prescription import (
     CoatingLayerSpec,
     CoatingSpec,
     LensFormatError,
@@ -18,17 +18,17 @@ from ._prescription import (
     MediumSpec,
     SurfaceSpec,
 )
-from ._path_build import default_cache_dir, path_system, path_systems
-from ._path_domain import PathDomain, half_field_of_view_deg, make_domain
-from ._path_fit import refit
-from ._path_system import PathSystem, PathSystemReport
-from ._trace import TraceResult, ghost_paths, path_events, path_fresnel_factor, trace
-from ._coatings import COATING_PRESETS, with_coating, with_coating_layers
-from ._scene import Camera, Distortion, Geometry, Hood, Light, RenderSettings, Scene, SceneError, SurfaceCoating, load_scene
-from ._render import QUALITY_LEVELS, RenderResult, render
-from ._exr import read_exr, write_exr
+from jaxflare.polynomial._build import default_cache_dir, path_system, path_systems
+from jaxflare.polynomial._domain import PathDomain, half_field_of_view_deg, make_domain
+from jaxflare.polynomial._least_squares import refit
+from jaxflare.polynomial._system import PathSystem, PathSystemReport
+from jaxflare.optics._trace import TraceResult, ghost_paths, path_events, path_fresnel_factor, trace
+from jaxflare.optics._coatings import COATING_PRESETS, with_coating, with_coating_layers
+from jaxflare.scenes._scene import Camera, Distortion, Geometry, Hood, Light, RenderSettings, Scene, SceneError, SurfaceCoating, load_scene
+from jaxflare.render._render import QUALITY_LEVELS, RenderResult, render
+from jaxflare.io._exr import read_exr, write_exr
 
-__version__ = "0.1.0"
+from ._version import __version__
 
 __all__ = [
     "COATING_PRESETS",

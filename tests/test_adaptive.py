@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import jaxflare as jf
-from jaxflare._adaptive import SamplingTable, draw, masked_table, uniform_table
+from jaxflare.render._adaptive import SamplingTable, draw, masked_table, uniform_table
 
 PATHS = [(7, 4), (4, 2), (2, 0), (9, 7), (5, 0)]
 

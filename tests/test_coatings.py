@@ -1,6 +1,6 @@
-"""Coating presets and custom stacks (jaxflare._coatings), and Lens.at_focal_length.
+"""Coating presets and custom stacks (jaxflare.optics._coatings), and Lens.at_focal_length.
 
-Reflectances are checked with the characteristic-matrix code (jaxflare._fresnel) at normal
+Reflectances are checked with the characteristic-matrix code (jaxflare.optics._thin_film) at normal
 incidence on the glass of a real surface of the Biotar, with the layer order the tracer uses: a
 ray travelling forward meets the stored order, a backward ray the reversed one.
 
@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 import jaxflare
-from jaxflare._coatings import COATING_PRESETS, with_coating, with_coating_layers
-from jaxflare._fresnel import coated_reflectance
+from jaxflare.optics._coatings import COATING_PRESETS, with_coating, with_coating_layers
+from jaxflare.optics._thin_film import coated_reflectance
 
 BAND_NM = np.linspace(450.0, 650.0, 41)
 WIDE_NM = np.linspace(400.0, 700.0, 61)

@@ -1,4 +1,4 @@
-"""Spectral colour tables (jaxflare._colour): physics checks against colour-science.
+"""Spectral colour tables (jaxflare.colour._spectral): physics checks against colour-science.
 
 The renderer averages per-wavelength contributions over a uniformly drawn wavelength, so most
 checks evaluate that average either on a dense uniform grid (midpoint rule through the public
@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflare import _colour as jc
+from jaxflare.colour import _spectral as jc
 
 SPACES = jc.COLOUR_SPACES
 N_DENSE = 40_000
@@ -332,5 +332,5 @@ def test_import_is_lazy():
     import subprocess
     import sys
 
-    code = "import sys, jaxflare._colour; assert 'colour' not in sys.modules, 'colour imported eagerly'"
+    code = "import sys, jaxflare.colour._spectral; assert 'colour' not in sys.modules, 'colour imported eagerly'"
     subprocess.run([sys.executable, "-c", code], check=True)

@@ -1,4 +1,4 @@
-"""Front-lens dirt maps (jaxflare._dirt): orientation, interpolation, gradients and file loading."""
+"""Front-lens dirt maps (jaxflare.render.effects._dirt): orientation, interpolation, gradients and file loading."""
 
 import jax
 import jax.numpy as jnp
@@ -7,8 +7,8 @@ import OpenEXR
 import pytest
 from PIL import Image
 
-from jaxflare._dirt import dirt_transmission, load_dirt_map
-from jaxflare._exr import write_exr
+from jaxflare.render.effects._dirt import dirt_transmission, load_dirt_map
+from jaxflare.io._exr import write_exr
 
 R0 = 12.5  # front clear semi-aperture, mm
 

@@ -1,4 +1,4 @@
-"""Image-space lens distortion of flare samples (jaxflare._distortion): Brown-Conrady and ST-maps."""
+"""Image-space lens distortion of flare samples (jaxflare.render.effects._distortion): Brown-Conrady and ST-maps."""
 
 import jax
 import jax.numpy as jnp
@@ -6,8 +6,8 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from jaxflare._distortion import BrownConrady, distort, identity_st_map, load_st_map, st_map_distort
-from jaxflare._exr import write_exr
+from jaxflare.render.effects._distortion import BrownConrady, distort, identity_st_map, load_st_map, st_map_distort
+from jaxflare.io._exr import write_exr
 
 W, H = 64, 48
 F = 55.0  # focal length in pixels

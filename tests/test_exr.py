@@ -1,4 +1,4 @@
-"""Multi-layer EXR output (jaxflare._exr) and tone-mapped PNG previews (jaxflare._preview)."""
+"""Multi-layer EXR output (jaxflare.io._exr) and tone-mapped PNG previews (jaxflare.io._preview)."""
 
 import json
 import os
@@ -8,9 +8,9 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from jaxflare import _exr
-from jaxflare._exr import HALF_CLIPPED_ATTRIBUTE, read_exr, write_exr
-from jaxflare._preview import tone_map, write_png
+from jaxflare.io import _exr
+from jaxflare.io._exr import HALF_CLIPPED_ATTRIBUTE, read_exr, write_exr
+from jaxflare.io._preview import tone_map, write_png
 
 H, W = 6, 9
 

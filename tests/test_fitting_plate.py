@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 
 from fitting._plate import Plate, PlateQuantisationWarning, load_plate, save_plate
-from jaxflare._exr import write_exr
+from jaxflare.io._exr import write_exr
 
 
 def _ramp(height=4, width=5, scale=1.0):

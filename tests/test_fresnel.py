@@ -1,4 +1,4 @@
-"""Physics checks for jaxflare._fresnel (thin-film-coated Fresnel reflectance).
+"""Physics checks for jaxflare.optics._thin_film (thin-film-coated Fresnel reflectance).
 
 Compiling on the CPU dominates the run time, so most checks go through :func:`_rsp`, which feeds
 every evaluation to one fixed-shape call (rows padded to a fixed batch, stacks padded with
@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflare._fresnel import (
+from jaxflare.optics._thin_film import (
     coated_reflectance,
     coated_reflectance_sp,
     schlick_reflectance,

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxflare._glass import (
+from jaxflare.optics._glass import (
     C_LINE_NM,
     D_LINE_NM,
     F_LINE_NM,

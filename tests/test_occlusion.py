@@ -11,7 +11,7 @@ import pytest
 
 trimesh = pytest.importorskip("trimesh")
 
-from jaxflare._occlusion import (
+from jaxflare.render.effects._occluders import (
     Hood,
     Occluders,
     embree_available,
@@ -20,7 +20,7 @@ from jaxflare._occlusion import (
     load_occluders,
     segment_visibility,
 )
-from jaxflare._scene import Camera
+from jaxflare.scenes._scene import Camera
 
 
 def rectangle(x0, x1, y0, y1, z):
@@ -288,7 +288,7 @@ def test_without_embree_the_numpy_intersector_gives_the_same_answer_with_a_warni
     import trimesh.ray
     from trimesh.ray.ray_triangle import RayMeshIntersector
 
-    from jaxflare._occlusion import OcclusionWarning
+    from jaxflare.render.effects._occluders import OcclusionWarning
 
     mesh = scene_mesh()
     starts, ends = random_segments(400, 8)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import jaxflare
-from jaxflare import _path_system  # EVALUATIONS: the evaluator trace counter
+from jaxflare.polynomial import _system as _path_system  # EVALUATIONS: the evaluator trace counter
 from conftest import lens_from_toml
 
 FAST = dict(validation_rays=8192, cache=False)

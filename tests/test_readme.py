@@ -296,7 +296,7 @@ def toml_blocks() -> list[Block]:
 def test_toml_examples_load(block):
     data = tomllib.loads(block.text)
     if "camera" in data:
-        from jaxflare._scene import camera_lens, demo_scene_path, scene_from_dict
+        from jaxflare.scenes._scene import camera_lens, demo_scene_path, scene_from_dict
 
         scene = scene_from_dict(data)
         assert camera_lens(scene.camera).num_interfaces > 0

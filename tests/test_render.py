@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import jaxflare as jf
-from jaxflare._colour import rgb_response_at, spectral_table
+from jaxflare.colour._spectral import rgb_response_at, spectral_table
 
 
 def make_scene(light=None, lights=None, render=None, **camera):

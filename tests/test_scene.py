@@ -5,7 +5,7 @@ import math
 import pytest
 
 import jaxflare as jf
-from jaxflare._scene import camera_lens, demo_scene_path, scene_from_dict
+from jaxflare.scenes._scene import camera_lens, demo_scene_path, scene_from_dict
 
 BASE = {
     "camera": {"lens": "zeiss_biotar", "f_number": 4.0, "resolution": [64, 48], "look_at_m": [0.0, 0.0, -10.0]},

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 import jaxflare
-from jaxflare._scene import (
+from jaxflare.scenes._scene import (
     _CAMERA_KEYS,
     _LIGHT_KEYS,
     Distortion,
@@ -157,7 +157,7 @@ def test_every_table_key_is_documented_with_its_default(table, key):
 def test_the_documented_missing_file_errors_are_the_code_s(camera, geometry):
     """Missing files are reported when the render starts (the scene only records their paths);
     the messages FORMAT.md quotes are the ones the code gives."""
-    from jaxflare._render import _scene_effects
+    from jaxflare.render._render import _scene_effects
 
     source = "/shots/sh010/lamp.toml"
     assert not Path(source).parent.exists()

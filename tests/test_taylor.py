@@ -9,8 +9,8 @@ import pytest
 from conftest import lens_from_toml
 
 import jaxflare
-from jaxflare._polybasis import monomial_exponents, monomials_numpy
-from jaxflare._taylor import taylor_path_coefficients
+from jaxflare.polynomial._basis import monomial_exponents, monomials_numpy
+from jaxflare.polynomial._taylor import taylor_path_coefficients
 
 D_LINE = 587.56
 ENTRANCE_Z = -10.0

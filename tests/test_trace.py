@@ -10,7 +10,7 @@ import pytest
 from conftest import lens_from_toml
 
 import jaxflare
-from jaxflare._fresnel import uncoated_reflectance
+from jaxflare.optics._thin_film import uncoated_reflectance
 
 N_GLASS = 1.5  # model glasses are exact at the d line, so n(587.56 nm) = n_d
 D_LINE = 587.56
@@ -319,10 +319,10 @@ def test_one_compilation_serves_every_ghost_path(biotar):
     origins, directions = _parallel_rays([1.0, 2.0])
     jaxflare.trace(biotar, origins, directions, 550.0, (1, 0))
     jaxflare.trace(biotar, origins, directions, 550.0, (5, 2))
-    before = jaxflare._trace.TRACE_COMPILATIONS[0]
+    before = jaxflare.optics._trace.TRACE_COMPILATIONS[0]
     for path in jaxflare.ghost_paths(biotar):
         jaxflare.trace(biotar, origins, directions, 550.0, path)
-    assert jaxflare._trace.TRACE_COMPILATIONS[0] == before  # paths with 1 and 3 stop passes both compiled above
+    assert jaxflare.optics._trace.TRACE_COMPILATIONS[0] == before  # paths with 1 and 3 stop passes both compiled above
 
 
 DEEP_MENISCUS = """
@@ -374,7 +374,7 @@ def test_per_ray_event_tables_match_one_path_at_a_time(biotar):
     each ray exactly as a batch of that path alone does."""
     import numpy as np
 
-    from jaxflare._trace import _trace_events
+    from jaxflare.optics._trace import _trace_events
 
     paths = [None, (5, 0), (7, 4), (9, 7), (4, 2)]
     rng = np.random.default_rng(3)

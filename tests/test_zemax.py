@@ -1,4 +1,4 @@
-"""Zemax OpticStudio ``.zmx`` import and export (``jaxflare._zemax``).
+"""Zemax OpticStudio ``.zmx`` import and export (``jaxflare.io._zemax``).
 
 Everything here is plain Python on small texts: no tracing, no JAX arrays."""
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from jaxflare._prescription import (
+from jaxflare.optics._prescription import (
     AIR,
     CoatingSpec,
     LensFormatError,
@@ -21,7 +21,7 @@ from jaxflare._prescription import (
     MediumSpec,
     SurfaceSpec,
 )
-from jaxflare._zemax import decode_zmx_bytes, parse_zmx, read_zmx, write_zmx, zmx_text
+from jaxflare.io._zemax import decode_zmx_bytes, parse_zmx, read_zmx, write_zmx, zmx_text
 
 DATA = Path(__file__).parent / "data" / "zmx"
 FIXTURE = DATA / "double_gauss_50mm.zmx"

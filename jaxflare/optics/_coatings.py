@@ -15,7 +15,7 @@ forward order (object side first). Arrays grow with zero-thickness layers (an ex
 when a stack has more layers than the lens has room for; dtypes are kept.
 
 Preset designs (all at normal incidence; reflectances computed with the characteristic-matrix
-code in :mod:`jaxflare._fresnel`, figures for glass of n = 1.6 unless noted):
+code in :mod:`jaxflare.optics._thin_film`, figures for glass of n = 1.6 unless noted):
 
 - ``"mgf2"``: one quarter-wave MgF2 layer (n = 1.38) at 550 nm, the lens-file default. Minimum
   R = 0.76 % at 550 nm on n = 1.6, rising to 1.31 % at 450 nm and 1.03 % at 650 nm (bare: 5.3 %);
@@ -49,7 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._lens import Lens, _default_coating
+from jaxflare.optics._lens import Lens, _default_coating
 
 __all__ = ["COATING_PRESETS", "with_coating", "with_coating_layers"]
 

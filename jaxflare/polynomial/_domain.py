@@ -18,8 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ._lens import Lens
-from ._trace import _surface_sag_slope, trace
+from jaxflare.optics._lens import Lens
+from jaxflare.optics._trace import _surface_sag_slope, trace
 
 DEFAULT_WAVELENGTH_RANGE_NM = (380.0, 780.0)
 TRUST_GRID = (5, 5, 5, 5, 2)

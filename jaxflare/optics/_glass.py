@@ -262,7 +262,7 @@ def _loose_key(name: str) -> str:
 
 @functools.cache
 def _table() -> _Table:
-    resource = importlib.resources.files("jaxflare") / "data" / "glass_catalog.csv"
+    resource = importlib.resources.files("jaxflare.optics") / "data" / "glass_catalog.csv"
     with resource.open("r", encoding="utf-8", newline="") as f:
         glasses = [
             Glass(

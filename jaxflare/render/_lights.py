@@ -25,8 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from ._colour import SpectralTable, blackbody_spectrum, normalise_spectrum, rgb_response_at
-from ._scene import Scene, SceneError, light_travel_direction
+from jaxflare.colour._spectral import SpectralTable, blackbody_spectrum, normalise_spectrum, rgb_response_at
+from jaxflare.scenes._scene import Scene, SceneError, light_travel_direction
 
 POINT, SPHERE, DISK, DIRECTIONAL = 0, 1, 2, 3
 KINDS = {"point": POINT, "sphere": SPHERE, "disk": DISK, "directional": DIRECTIONAL}

@@ -19,9 +19,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from ._fresnel import coated_reflectance
-from ._glass import sellmeier_index
-from ._lens import Lens
+from jaxflare.optics._thin_film import coated_reflectance
+from jaxflare.optics._glass import sellmeier_index
+from jaxflare.optics._lens import Lens
 
 REFRACT = 0
 REFLECT = 1

@@ -50,12 +50,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._adaptive import masked_table, uniform_table
-from ._colour import canonical_colour_space, spectral_table
-from ._lens import Lens
-from ._lights import DIRECTIONAL, FrontDisc, LightArrays, light_arrays
-from ._path_domain import entrance_plane_z_mm, front_rim_sag_mm
-from ._render_step import (
+from jaxflare.render._adaptive import masked_table, uniform_table
+from jaxflare.colour._spectral import canonical_colour_space, spectral_table
+from jaxflare.optics._lens import Lens
+from jaxflare.render._lights import DIRECTIONAL, FrontDisc, LightArrays, light_arrays
+from jaxflare.polynomial._domain import entrance_plane_z_mm, front_rim_sag_mm
+from jaxflare.render._step import (
     STEP,
     STEP_DONATING,
     AdaptiveSet,
@@ -65,8 +65,8 @@ from ._render_step import (
     empty_accumulators,
     path_fresnel_table,
 )
-from ._scene import Scene, camera_lens, load_scene, sensor_size_mm
-from ._trace import ghost_paths, path_events
+from jaxflare.scenes._scene import Scene, camera_lens, load_scene, sensor_size_mm
+from jaxflare.optics._trace import ghost_paths, path_events
 
 GhostPath = tuple[int, int]
 
@@ -133,7 +133,7 @@ class RenderResult:
         import json
         import os
 
-        from ._exr import write_exr
+        from jaxflare.io._exr import write_exr
 
         settings = self.scene.render
         layers = {"": self.image}
@@ -151,8 +151,8 @@ class RenderResult:
 
     def preview(self, *, include_core: bool = True, exposure_stops: float | None = None) -> np.ndarray:
         """A tone-mapped sRGB 8-bit preview of the flare (and the core)."""
-        from ._colour import display_matrix
-        from ._preview import tone_map
+        from jaxflare.colour._spectral import display_matrix
+        from jaxflare.io._preview import tone_map
 
         flare = self.image[..., :3]
         if exposure_stops is None:  # expose for the flares: the core would otherwise set the exposure
@@ -166,7 +166,7 @@ class RenderResult:
     def write_png(self, path, **options) -> str:
         import os
 
-        from ._preview import write_png
+        from jaxflare.io._preview import write_png
 
         write_png(path, self.preview(**options))
         return os.fspath(path)
@@ -192,7 +192,7 @@ def _field_angle_deg(lights: LightArrays, front_radius_mm: float) -> float:
 def _choose_paths(lens: Lens, paths) -> list[GhostPath]:
     if paths is None:
         return ghost_paths(lens)
-    from ._trace import _check_path
+    from jaxflare.optics._trace import _check_path
 
     chosen = []
     for path in paths:
@@ -207,7 +207,7 @@ def _choose_paths(lens: Lens, paths) -> list[GhostPath]:
 def _build_kernels(lens, geometry_lens, paths, quality, pitch_mm, field_deg, progress):
     """Polynomial path systems of every path, built over the field the lights use to the
     render's pixel tolerance, as float32 kernels on the render lens (iris, coatings)."""
-    from ._path_build import path_system
+    from jaxflare.polynomial._build import path_system
 
     domain_field = min(85.0, 5.0 * math.ceil((field_deg + 1.0) / 5.0))
     iterator = range(len(paths))
@@ -240,7 +240,7 @@ def _canonical_settings(scene: Scene, quality: str | None, samples: int | None, 
     if method is not None:
         overrides["method"] = method
     settings = dataclasses.replace(settings, **overrides)
-    from ._scene import check_settings
+    from jaxflare.scenes._scene import check_settings
 
     check_settings(settings, "render")
     return settings
@@ -284,7 +284,7 @@ def _cached_occluders(files: list[str], transforms: list[np.ndarray]):
     occluders (a static field), so reloading them would recompile every render."""
     import os
 
-    from ._occlusion import load_occluders
+    from jaxflare.render.effects._occluders import load_occluders
 
     key = (tuple(files), tuple(t.tobytes() for t in transforms), tuple(os.stat(f).st_mtime_ns if os.path.exists(f) else None for f in files))
     if key not in _OCCLUDER_CACHE:
@@ -296,19 +296,19 @@ def _cached_occluders(files: list[str], transforms: list[np.ndarray]):
 
 def _scene_effects(scene: Scene, lens: Lens, pitch_mm: float) -> SceneEffects:
     """Dirt, hood, occluding geometry and distortion of a scene, loaded (errors name the key)."""
-    from ._scene import SceneError
+    from jaxflare.scenes._scene import SceneError
 
     camera = scene.camera
     effects = {}
     if camera.dirt_map is not None:
-        from ._dirt import load_dirt_map
+        from jaxflare.render.effects._dirt import load_dirt_map
 
         try:
             effects["dirt"] = jnp.asarray(load_dirt_map(camera.dirt_map), jnp.float32)
         except (OSError, ValueError) as error:
             raise SceneError(f"camera.dirt_map: {error}") from None
     if camera.hood is not None:
-        from ._occlusion import Hood
+        from jaxflare.render.effects._occluders import Hood
 
         hood = camera.hood
         effects["hood"] = Hood(hood.shape, hood.distance_mm, hood.radius_mm, hood.half_width_mm, hood.half_height_mm)
@@ -326,14 +326,14 @@ def _scene_effects(scene: Scene, lens: Lens, pitch_mm: float) -> SceneEffects:
     if camera.distortion is not None:
         distortion = camera.distortion
         if distortion.st_map is not None:
-            from ._distortion import load_st_map
+            from jaxflare.render.effects._distortion import load_st_map
 
             try:
                 effects["st_map"] = jnp.asarray(load_st_map(distortion.st_map), jnp.float32)
             except (OSError, ValueError) as error:
                 raise SceneError(f"camera.distortion.st_map: {error}") from None
         else:
-            from ._distortion import BrownConrady
+            from jaxflare.render.effects._distortion import BrownConrady
 
             focal = distortion.focal_length_px or lens.focal_length() / pitch_mm
             effects["distortion"] = BrownConrady.create(
@@ -361,7 +361,7 @@ def prepare_render(
     """Everything before the render's batches: settings, lens, paths, path systems, the pilot and
     what it decides (layers, culling, sampling tables, polynomial fallbacks), and the final
     :class:`RenderSetup`. :func:`render` runs the batches; the fitting package draws fixed sample
-    records from the same set-up (:func:`jaxflare._render_step.batch_records`)."""
+    records from the same set-up (:func:`jaxflare.render._step.batch_records`)."""
     started = time.perf_counter()
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
@@ -628,7 +628,7 @@ def render(
 
     path_energy = np.asarray(acc.path_energy, np.float64) * scale[layer_of_path][:, None] * pitch * pitch
     flare_samples = path_samples[:num_flares].sum()
-    from . import __version__
+    from jaxflare._version import __version__
 
     statistics = dict(
         jaxflare_version=__version__,

@@ -19,7 +19,7 @@ interprets what it has been checked against and refuses the rest:
   non-circular apertures, true toroids, gradient index, non-sequential parts, glass offsets,
   thickness solves that would need a ray trace per zoom position, ...) are errors, never dropped.
 
-Conventions of the result are those of :mod:`jaxflare._prescription` (millimetres, the object
+Conventions of the result are those of :mod:`jaxflare.optics._prescription` (millimetres, the object
 surface ``SURF 0`` and the image surface dropped, the last thickness is the distance to the
 sensor). The writer emits a plain ASCII file in the same record shapes (see :func:`zmx_text`).
 """
@@ -33,8 +33,8 @@ import os
 import re
 from decimal import Decimal, InvalidOperation
 
-from ._io import write_bytes_atomic
-from ._prescription import AIR, LensFormatError, LensPrescription, MediumSpec, SurfaceSpec
+from jaxflare.io._atomic import write_bytes_atomic
+from jaxflare.optics._prescription import AIR, LensFormatError, LensPrescription, MediumSpec, SurfaceSpec
 
 __all__ = ["decode_zmx_bytes", "parse_zmx", "read_zmx", "write_zmx", "zmx_text"]
 

@@ -6,9 +6,9 @@ import difflib
 import os
 from importlib import resources
 
-from ._lens import Lens, build_lens
-from ._lens_format import read_lens_toml
-from ._prescription import LensPrescription
+from jaxflare.optics._lens import Lens, build_lens
+from jaxflare.io._lens_toml import read_lens_toml
+from jaxflare.optics._prescription import LensPrescription
 
 
 def _bundled_directory():
@@ -30,7 +30,7 @@ def read_prescription(source: str | os.PathLike) -> LensPrescription:
     text = os.fspath(source)
     lower = text.lower()
     if lower.endswith(".zmx"):
-        from ._zemax import read_zmx
+        from jaxflare.io._zemax import read_zmx
 
         return read_zmx(text)
     if lower.endswith(".toml") or os.sep in text or os.path.exists(text):

@@ -2,7 +2,7 @@
 
 A preview is for *looking* at a render (thumbnails, notebooks, reports); it is not for compositing.
 It is display-referred, clipped, exposure-adjusted, rolled off and quantised to 8 bits, so it has
-lost the scene-linear values. Composite from the EXR (:func:`jaxflare._exr.write_exr`) instead.
+lost the scene-linear values. Composite from the EXR (:func:`jaxflare.io._exr.write_exr`) instead.
 
 The pipeline of :func:`tone_map`, in order:
 
@@ -26,7 +26,7 @@ import os
 
 import numpy as np
 
-from ._io import atomic_output_path
+from jaxflare.io._atomic import atomic_output_path
 
 __all__ = ["REC709_LUMINANCE", "tone_map", "write_png"]
 

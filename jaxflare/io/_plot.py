@@ -7,9 +7,9 @@ import os
 
 import numpy as np
 
-from ._io import atomic_output_path
-from ._lens import Lens
-from ._trace import GhostPath, ghost_paths, path_events, path_fresnel_factor, trace
+from jaxflare.io._atomic import atomic_output_path
+from jaxflare.optics._lens import Lens
+from jaxflare.optics._trace import GhostPath, ghost_paths, path_events, path_fresnel_factor, trace
 
 
 def _meridional_sag(lens: Lens, surface: int, y: np.ndarray) -> np.ndarray:

@@ -39,7 +39,7 @@ Files
 -----
 :func:`load_dirt_map` reads PNG, JPEG and TIFF through Pillow (8-bit values divided by 255, 16-bit
 ones by 65535; an alpha channel is dropped, palette images are expanded to RGB) and OpenEXR through
-:func:`jaxflare._exr.read_exr` (the default layer, RGB or Y; alpha dropped). Floating-point images
+:func:`jaxflare.io._exr.read_exr` (the default layer, RGB or Y; alpha dropped). Floating-point images
 (EXR, float TIFF) must already lie in ``[0, 1]``.
 """
 
@@ -52,7 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._bilinear import bilinear
+from jaxflare.render.effects._bilinear import bilinear
 
 __all__ = ["DIRT_FORMATS", "dirt_transmission", "load_dirt_map"]
 
@@ -110,7 +110,7 @@ def _read_pillow(path: str) -> np.ndarray:
 
 
 def _read_exr(path: str) -> np.ndarray:
-    from ._exr import read_exr
+    from jaxflare.io._exr import read_exr
 
     try:
         layers, _ = read_exr(path)

@@ -1,7 +1,7 @@
 """Occlusion of light-to-lens connections: scene meshes (ray cast on the host) and lens hoods (JAX).
 
 A flare sample connects a point on a light with a point on the front lens (see
-:func:`jaxflare._lights.sample_connections`). Anything between the two (a wall, a tree, a matte box)
+:func:`jaxflare.render._lights.sample_connections`). Anything between the two (a wall, a tree, a matte box)
 blocks that sample: its weight gets a factor 0. Visibility is a fixed 0/1 factor per sample, so
 fitting (gradients with respect to colours, powers and lens parameters that do not move the
 blocking edge) works unchanged; the visibility itself has no useful gradient and none is taken.
@@ -17,7 +17,7 @@ Two kinds of occluder:
   front of the front lens vertex, evaluated in pure JAX in the **lens frame, mm**
   (:func:`hood_visible`).
 
-Frames and units. World positions are metres (:mod:`jaxflare._scene`). The lens frame is mm, x to
+Frames and units. World positions are metres (:mod:`jaxflare.scenes._scene`). The lens frame is mm, x to
 the right, y up, z along the optical axis towards the sensor, with the front lens vertex (the
 camera's ``position_m``) at the origin; ``Camera.world_to_camera()`` is the rotation ``R`` taking
 world vectors to lens-frame vectors, so a lens-frame point ``p_mm`` is at

@@ -67,7 +67,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._bilinear import bilinear
+from jaxflare.render.effects._bilinear import bilinear
 
 __all__ = ["BrownConrady", "distort", "identity_st_map", "load_st_map", "st_map_distort"]
 

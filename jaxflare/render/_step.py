@@ -3,7 +3,7 @@
 Two kinds of path sets are rendered in each batch:
 
 - *adaptive sets* of exactly traced paths: every sample draws its (light, path, front-lens cell)
-  from a :class:`~jaxflare._adaptive.SamplingTable` and is traced along its own path's event table
+  from a :class:`~jaxflare.render._adaptive.SamplingTable` and is traced along its own path's event table
   (one batch mixes paths); its weight is ``a_cell / q``;
 - *polynomial groups*: paths with path systems of one structure, ``rays_per_path`` samples each,
   uniform over the front lens, evaluated together (vmapped).
@@ -19,10 +19,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from ._adaptive import SamplingTable, draw
-from ._lens import Lens
-from ._lights import Connections, FrontDisc, LightArrays, light_rgb, sample_connections
-from ._trace import _surface_sag_slope, _trace_events
+from jaxflare.render._adaptive import SamplingTable, draw
+from jaxflare.optics._lens import Lens
+from jaxflare.render._lights import Connections, FrontDisc, LightArrays, light_rgb, sample_connections
+from jaxflare.optics._trace import _surface_sag_slope, _trace_events
 
 
 class AdaptiveSet(eqx.Module):
@@ -175,11 +175,11 @@ def _records(setup: RenderSetup, connections: Connections, path, traced, weight,
     xy = front_vertex_plane_xy(connections.origins, connections.directions)
     visible = jnp.ones(xy.shape[0], bool)
     if effects.hood is not None:
-        from ._occlusion import hood_visible
+        from jaxflare.render.effects._occluders import hood_visible
 
         visible = visible & hood_visible(effects.hood, connections.origins, connections.directions)
     if effects.occluders is not None:
-        from ._occlusion import segment_visibility
+        from jaxflare.render.effects._occluders import segment_visibility
 
         to_world = effects.camera_to_world
         start = effects.camera_position_m + (connections.origins / 1000.0) @ to_world.T
@@ -208,7 +208,7 @@ def record_values(
     """RGB value (N, 3) of each recorded sample for the given light colours, coatings (on-axis
     Fresnel factor per path and wavelength), tints and dirt map: equation (2). Differentiable in all
     of them; zero where the sample did not hit. ``rgb``: each sample's light colour at its
-    wavelength (:func:`jaxflare._lights.light_rgb`), when the caller has it already."""
+    wavelength (:func:`jaxflare.render._lights.light_rgb`), when the caller has it already."""
     if rgb is None:
         rgb = light_rgb(lights, spectral, records.light, records.wavelength_nm)
     if records.exact_throughput is None:
@@ -217,7 +217,7 @@ def record_values(
         fresnel = records.exact_throughput
     value = rgb * (records.geometry * fresnel)[:, None] * path_tint[records.path]
     if dirt is not None:
-        from ._dirt import dirt_transmission
+        from jaxflare.render.effects._dirt import dirt_transmission
 
         value = value * dirt_transmission(dirt, records.front_xy_mm, front_radius_mm)
     return jnp.where(records.hit[:, None], value, 0.0)
@@ -231,11 +231,11 @@ def _image_position(setup: RenderSetup, sensor_xy: Array):
     row = sensor_xy[:, 1] / setup.pixel_pitch_mm + 0.5 * height
     effects = setup.effects
     if effects.distortion is not None:
-        from ._distortion import distort
+        from jaxflare.render.effects._distortion import distort
 
         column, row = distort(effects.distortion, column, row, width, height)
     if effects.st_map is not None:
-        from ._distortion import st_map_distort
+        from jaxflare.render.effects._distortion import st_map_distort
 
         column, row = st_map_distort(effects.st_map, column, row, width, height)
     return column, row
@@ -280,7 +280,7 @@ def batch_records(setup: RenderSetup, key: Array) -> tuple[SampleRecords, ...]:
         records.append(_records(setup, connections, path, traced, weight / count, index))
 
     for group in setup.polynomial:
-        from ._path_system import evaluate
+        from jaxflare.polynomial._system import evaluate
 
         n = setup.rays_per_path
         keys = jax.vmap(lambda p: jax.random.fold_in(key, p))(group.path_index)

@@ -16,11 +16,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ._lens import Lens
-from ._path_domain import TRUST_GRID, PathDomain, rays_from_variables, sample_variables
-from ._path_system import AUXILIARY_DEGREE, PathSystem, precise_columns
-from ._polybasis import monomials
-from ._trace import TraceResult, _stop_pass_count, path_events, trace
+from jaxflare.optics._lens import Lens
+from jaxflare.polynomial._domain import TRUST_GRID, PathDomain, rays_from_variables, sample_variables
+from jaxflare.polynomial._system import AUXILIARY_DEGREE, PathSystem, precise_columns
+from jaxflare.polynomial._basis import monomials
+from jaxflare.optics._trace import TraceResult, _stop_pass_count, path_events, trace
 
 _APERTURE_MARGIN = 1.03
 """Clear apertures are widened by this factor for the fit samples, so each polynomial is also
@@ -287,7 +287,7 @@ def build_polynomial(lens, path, domain, exponents, construction, sparse_terms, 
             exponents = exponents[used]
             coefficients, estimator = _fit_columns(wide, variables, exponents, clip_rows, max_clip_events, support[used])
     else:
-        from ._taylor import taylor_path_coefficients
+        from jaxflare.polynomial._taylor import taylor_path_coefficients
 
         series = taylor_path_coefficients(
             lens, path, int(exponents.max(initial=0)) if len(exponents) else 0,

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import inspect
 import io
 import json
 import os
@@ -18,14 +17,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._io import write_bytes_atomic
-from ._lens import Lens
-from ._path_domain import DEFAULT_WAVELENGTH_RANGE_NM, PathDomain, as_float64, half_field_of_view_deg, make_domain, sample_variables
-from ._path_fit import build_polynomial, sample_region
-from ._path_system import PathSystem, PathSystemReport
-from ._path_validate import validate
-from ._polybasis import monomial_exponents
-from ._trace import GhostPath, _check_path
+from jaxflare.io._atomic import write_bytes_atomic
+from jaxflare.optics._lens import Lens
+from jaxflare.polynomial._domain import DEFAULT_WAVELENGTH_RANGE_NM, PathDomain, as_float64, half_field_of_view_deg, make_domain, sample_variables
+from jaxflare.polynomial._least_squares import build_polynomial, sample_region
+from jaxflare.polynomial._system import PathSystem, PathSystemReport
+from jaxflare.polynomial._validate import validate
+from jaxflare.polynomial._basis import monomial_exponents
+from jaxflare.optics._trace import GhostPath, _check_path
 
 Construction = Literal["fit", "taylor"]
 DEFAULT_DEGREE = 5
@@ -33,13 +32,15 @@ CACHE_FORMAT = 2
 
 
 def _code_version() -> str:
-    """The package version and a digest of the source of every module a path system depends on."""
-    from . import __version__, _path_domain, _path_fit, _path_system, _path_validate, _polybasis, _taylor, _trace
+    """The package version and a digest of the source of every module a path system depends on
+    (the optics and polynomial packages): a cached system is rebuilt when any of them changes."""
+    from jaxflare._version import __version__
 
     digest = hashlib.sha256()
-    for module in (_path_domain, _path_fit, _path_system, _path_validate, _polybasis, _taylor, _trace):
-        digest.update(inspect.getsource(module).encode())
-    digest.update(inspect.getsource(inspect.getmodule(_code_version)).encode())
+    root = Path(__file__).resolve().parent.parent
+    for package in ("optics", "polynomial"):
+        for source in sorted((root / package).glob("*.py")):
+            digest.update(source.read_bytes())
     return f"{__version__}-{CACHE_FORMAT}-{digest.hexdigest()[:16]}"
 
 
@@ -180,7 +181,7 @@ def _assemble(lens: Lens, arrays: dict, static: dict, fallback: str, fallback_fr
 
 def path_systems(lens: Lens, paths: Sequence[GhostPath | None] | None = None, **options) -> dict:
     """Path systems for several paths (default: every ghost path of ``lens``), keyed by path."""
-    from ._trace import ghost_paths
+    from jaxflare.optics._trace import ghost_paths
 
     paths = ghost_paths(lens) if paths is None else list(paths)
     if options.get("max_field_angle_deg") is None:  # trace the field of view once, not once per path

@@ -6,7 +6,7 @@ the subsets are the triples (light, path, cell) and their probabilities one join
 also samples several lights by their flare contribution, which the paper lists as future work.
 
 Cells are equal-area polar cells of the unit disc (rings x sectors); the renderer maps the unit
-disc onto its per-sample front-lens disc (:class:`jaxflare._lights.FrontDisc`). Each sample's
+disc onto its per-sample front-lens disc (:class:`jaxflare.render._lights.FrontDisc`). Each sample's
 weight is ``a_cell / q``: the cell's area fraction over the table probability, so every batch is an
 unbiased estimate whatever the table, and the table can be re-learnt between batches from what
 the render has seen. A defensive share of uniform probability keeps every triple reachable, so a

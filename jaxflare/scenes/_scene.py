@@ -112,7 +112,7 @@ class Camera:
     """(interface index, RGB multiplier of its reflectance) pairs."""
     dirt_map: str | None = None
     """Image of the dirt on the front element (PNG/TIFF/JPEG/EXR; 1 = clean, 0 = opaque), laid over
-    its clear aperture as seen from behind the camera (``jaxflare._dirt``)."""
+    its clear aperture as seen from behind the camera (``jaxflare.render.effects._dirt``)."""
     hood: "Hood | None" = None
     distortion: "Distortion | None" = None
 
@@ -316,7 +316,7 @@ def check_camera(camera: Camera, where: str = "camera") -> None:
             _fail(f"{where}.up", "must not be parallel to the viewing direction (look_at_m - position_m)")
     if camera.rotation_deg is not None:
         _vector(f"{where}.rotation_deg", camera.rotation_deg)
-    from ._coatings import COATING_PRESETS
+    from jaxflare.optics._coatings import COATING_PRESETS
 
     _choice(f"{where}.coating", camera.coating, tuple(COATING_PRESETS))
     for k, override in enumerate(camera.surface_coatings):
@@ -426,7 +426,7 @@ def check_settings(settings: RenderSettings, where: str = "render") -> None:
     _choice(f"{where}.quality", settings.quality, QUALITIES)
     if settings.samples is not None:
         _integer(f"{where}.samples", settings.samples, minimum=1)
-    from ._colour import canonical_colour_space
+    from jaxflare.colour._spectral import canonical_colour_space
 
     try:
         canonical_colour_space(settings.colour_space)
@@ -660,7 +660,7 @@ def load_scene(path: str | os.PathLike) -> Scene:
 
 def demo_scene_path() -> str:
     """Path of the bundled demo scene (``jaxflare/scenes/demo.toml``)."""
-    return os.path.join(os.path.dirname(__file__), "scenes", "demo.toml")
+    return os.path.join(os.path.dirname(__file__), "demo.toml")
 
 
 # --------------------------------------------------------------------------- the camera's lens
@@ -675,9 +675,9 @@ def camera_lens(camera: Camera, *, with_iris: bool = True, with_coatings: bool =
     """
     import warnings
 
-    from ._lens import LensWarning
-    from ._load import load_lens
-    from ._prescription import LensFormatError
+    from jaxflare.optics._lens import LensWarning
+    from jaxflare.io._lens_files import load_lens
+    from jaxflare.optics._prescription import LensFormatError
 
     try:
         with warnings.catch_warnings():
@@ -705,7 +705,7 @@ def camera_lens(camera: Camera, *, with_iris: bool = True, with_coatings: bool =
         except ValueError as error:
             _fail("camera.f_number", str(error))
     if with_coatings:
-        from ._coatings import with_coating, with_coating_layers
+        from jaxflare.optics._coatings import with_coating, with_coating_layers
 
         if camera.coating != "lens":
             lens = with_coating(lens, camera.coating)

@@ -31,10 +31,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from ._lens import Lens
-from ._path_domain import PathDomain, cell_index, entrance_variables
-from ._polybasis import graded_plan, monomial_rows
-from ._trace import TraceResult, _inside_iris, _surface_sag_slope, _trace_events, ray_arguments
+from jaxflare.optics._lens import Lens
+from jaxflare.polynomial._domain import PathDomain, cell_index, entrance_variables
+from jaxflare.polynomial._basis import graded_plan, monomial_rows
+from jaxflare.optics._trace import TraceResult, _inside_iris, _surface_sag_slope, _trace_events, ray_arguments
 
 GhostPath = tuple[int, int]
 

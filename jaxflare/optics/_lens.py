@@ -12,8 +12,8 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from . import _paraxial
-from ._glass import Glass, UnknownGlassError, find_glass, model_glass
-from ._prescription import (
+from jaxflare.optics._glass import Glass, UnknownGlassError, find_glass, model_glass
+from jaxflare.optics._prescription import (
     DEFAULT_COATING,
     UNCOATED,
     CoatingSpec,

@@ -1,9 +1,9 @@
 """Taylor expansion of the exact ray trace about the optical axis ("Polynomial Optics", Hullin,
 Hanika and Heidrich 2012).
 
-The sequential trace of :mod:`jaxflare._trace` is repeated surface by surface on truncated
+The sequential trace of :mod:`jaxflare.optics._trace` is repeated surface by surface on truncated
 multivariate power series (TPS, "differential algebra") in the five normalised entrance variables
-``(u, v, s, t, w)`` of :mod:`jaxflare._polybasis`, expanded at zero: the on-axis ray at the centre
+``(u, v, s, t, w)`` of :mod:`jaxflare.polynomial._basis`, expanded at zero: the on-axis ray at the centre
 wavelength. Every intermediate quantity (intersection distance, normal, index, direction) is a
 series truncated at total degree ``degree``, so the outputs are the exact Taylor polynomials of the
 traced ray's coordinates, not fits. Arithmetic is NumPy float64; a series is a coefficient array
@@ -20,9 +20,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ._lens import Lens
-from ._polybasis import NUM_VARIABLES, monomial_exponents
-from ._trace import _BEHIND_TOLERANCE_MM, REFLECT, GhostPath, path_events
+from jaxflare.optics._lens import Lens
+from jaxflare.polynomial._basis import NUM_VARIABLES, monomial_exponents
+from jaxflare.optics._trace import _BEHIND_TOLERANCE_MM, REFLECT, GhostPath, path_events
 
 
 class _SeriesAlgebra:

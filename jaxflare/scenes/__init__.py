@@ -1,0 +1,1 @@
+"""jaxflare.scene."""
