@@ -33,13 +33,14 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
-from jaxflare import ghost_paths
+from jaxflare.io import write_exr, write_text_atomic
+from jaxflare.optics import cast_floating, ghost_paths
+from jaxflare.scenes import Light, camera_lens
 
 from ._forward import (
     PATH_IMAGE_BYTES,
     FixedSamples,
     PathImages,
-    as_float64,
     fixed_samples,
     flare_render,
     path_image_model,
@@ -47,7 +48,6 @@ from ._forward import (
     path_images_bytes,
     render_image,
     reweighted,
-    scene_interface_tints,
 )
 from ._plate import Plate
 
@@ -144,15 +144,15 @@ class FitResult:
         }
 
 
-def _solver(name: str, rtol: float, atol: float):
+def _solver(name: str, rtol: float, atol: float, verbose=False):
     if name not in SOLVERS:
         raise ValueError(f"solver must be one of {', '.join(SOLVERS)}, got {name!r}")
     matrix_free = lx.Normal(lx.CG(rtol=1e-6, atol=1e-9, max_steps=500))
     if name == "levenberg-marquardt":
-        return optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=matrix_free)
+        return optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=matrix_free, verbose=verbose)
     if name == "gauss-newton":
-        return optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=matrix_free)
-    return optx.BFGS(rtol=rtol, atol=atol)
+        return optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=matrix_free, verbose=verbose)
+    return optx.BFGS(rtol=rtol, atol=atol, verbose=verbose)
 
 
 def _choose_model(model: str, params, scene, block: int, paths) -> str:
@@ -164,8 +164,6 @@ def _choose_model(model: str, params, scene, block: int, paths) -> str:
         return model
     if "dirt" in params:
         return "samples"
-    from jaxflare.scenes._scene import camera_lens
-
     num_paths = len(ghost_paths(camera_lens(scene.camera))) if paths is None else len(paths)
     size = path_images_bytes(scene, num_paths, per_light_colour="lights" in params, block=block)
     return "path-images" if size <= PATH_IMAGE_BYTES else "samples"
@@ -249,10 +247,10 @@ def fit(
     elif isinstance(fixed, PathImages) and fixed.block != block:
         raise ValueError(f"the path images given were made for block {fixed.block} (without full-resolution images), not block {block}")
     with jax.enable_x64(True):
-        forward = as_float64(fixed)
+        forward = cast_floating(fixed, jnp.float64)
         num_interfaces = forward.num_interfaces
         num_lights = forward.num_lights if isinstance(forward, PathImages) else int(forward.setup.lights.kind.shape[0])
-        scene_tints = np.clip(scene_interface_tints(scene, num_interfaces), 1e-3, TINT_MAX - 1e-3)
+        scene_tints = np.clip(scene.camera.interface_tints(num_interfaces), 1e-3, TINT_MAX - 1e-3)
         start = initial_parameters(
             num_interfaces, num_lights, tints=scene_tints, dirt=np.full((dirt_resolution, dirt_resolution, 1), dirt_prior) if "dirt" in params else None,
         )
@@ -314,43 +312,41 @@ def fit(
 
 
 def _solve(residuals, free, solver: str, rtol: float, atol: float, max_steps: int, progress):
-    """Run the solver step by step through optimistix's init/step/terminate, so the loss is known
-    (and reported) at every step; keep the best parameters; stop on a non-finite loss."""
-    chosen = _solver(solver, rtol, atol)
-    fn = residuals if solver != "bfgs" else (lambda y, a: 0.5 * jnp.sum(residuals(y, a) ** 2))
-    options, tags = {}, frozenset()
-    f_struct = jax.eval_shape(lambda y: fn(y, None), free)
-    loss_jit = eqx.filter_jit(lambda y: 0.5 * jnp.sum(residuals(y, None) ** 2))
-    state = chosen.init(_fn_aux(fn), free, None, options, f_struct, None, tags)
-    step = eqx.filter_jit(lambda y, s: chosen.step(_fn_aux(fn), y, None, options, s, tags))
-    terminate = eqx.filter_jit(lambda y, s: chosen.terminate(_fn_aux(fn), y, None, options, s, tags))
-    y = free
-    history = [float(loss_jit(y))]
-    best, best_loss = y, history[0]
-    done, result = False, optx.RESULTS.successful
-    steps, diverged = 0, None
-    for steps in range(1, max_steps + 1):
-        y, state, _ = step(y, state)
-        loss = float(loss_jit(y))
-        if not math.isfinite(loss):  # a diverging step: stop, keep the best parameters, say so
-            diverged = steps
-            break
-        history.append(loss)
-        if loss <= best_loss:
-            best, best_loss = y, loss
-        if progress is not None:
-            progress(steps, loss)
-        done, result = terminate(y, state)
-        if bool(done):
-            break
-    converged = diverged is None and bool(done) and bool(result == optx.RESULTS.successful)
-    if diverged is not None:
-        status = f"diverged at step {diverged} (non-finite loss): returned the best parameters, from step {history.index(best_loss)}"
-    elif converged:
-        status = "converged"
+    """Solve with optimistix (``optx.least_squares``, or ``optx.minimise`` for BFGS), wrapped in its
+    best-so-far solver, so the parameters returned are the best seen even when the solver stops
+    early or a step goes astray. The solver's own verbose hook reports each step's loss, which
+    feeds ``progress`` and the loss history (the best loss after each step, the start first)."""
+    losses: list[float] = []
+
+    def report(**fields):
+        def record(loss):
+            losses.append(float(loss))
+            if progress is not None:
+                progress(len(losses), min([initial] + losses))
+
+        jax.debug.callback(record, fields["loss_this_step"][1], ordered=True)
+
+    chosen = _solver(solver, rtol, atol, verbose=report)
+    initial = float(eqx.filter_jit(lambda y: 0.5 * jnp.sum(residuals(y, None) ** 2))(free))
+    if solver == "bfgs":
+        solution = optx.minimise(
+            lambda y, args: 0.5 * jnp.sum(residuals(y, args) ** 2), optx.BestSoFarMinimiser(chosen), free, max_steps=max_steps, throw=False
+        )
     else:
-        status = f"stopped: {optx.RESULTS[result]}" if bool(done) else f"not converged in {max_steps} steps"
-    return best, history, steps, converged, status
+        solution = optx.least_squares(residuals, optx.BestSoFarLeastSquares(chosen), free, max_steps=max_steps, throw=False)
+    result = solution.result
+    steps = int(solution.stats["num_steps"])
+    history = [initial]
+    for loss in losses[:steps]:
+        history.append(min(history[-1], loss) if math.isfinite(loss) else history[-1])
+    converged = bool(result == optx.RESULTS.successful)
+    if converged:
+        status = "converged"
+    elif result in (optx.RESULTS.max_steps_reached, optx.RESULTS.nonlinear_max_steps_reached):
+        status = f"not converged in {max_steps} steps"
+    else:
+        status = f"stopped: {optx.RESULTS[result]}"
+    return solution.value, history, steps, converged, status
 
 
 def _standard_errors(data_residuals, tints, dirt, gain, params):
@@ -392,17 +388,9 @@ def _with(tints_gain, dirt):
     return tints, dirt, gain
 
 
-def _fn_aux(fn):
-    """optimistix solvers call ``fn(y, args)`` and expect ``(out, aux)``."""
-    return lambda y, args: (fn(y, args), None)
-
-
 def save_fit(result: FitResult, path: str | os.PathLike) -> str:
     """Write the fitted parameters as JSON (``path``), the dirt map as ``<stem>_dirt.exr`` beside it,
     and the re-rendered flare and the residual as ``<stem>_render.exr``; all atomically."""
-    from jaxflare.io._exr import write_exr
-    from jaxflare.io._atomic import write_text_atomic
-
     path = os.fspath(path)
     stem = os.path.splitext(path)[0]
     data = result.as_dict()
@@ -418,8 +406,6 @@ def save_fit(result: FitResult, path: str | os.PathLike) -> str:
 def apply_fit(scene, fitted: str | os.PathLike | dict):
     """The scene with fitted parameters (a JSON file from :func:`save_fit` or its dict) applied:
     coating tints, the dirt map, and light gains (multiplying each light's RGB colour)."""
-    from jaxflare.scenes._scene import Light
-
     if not isinstance(fitted, dict):
         folder = os.path.dirname(os.path.abspath(fitted))
         with open(fitted) as handle:

@@ -26,8 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from jaxflare.render._render import prepare_render, radiance_scale
-from jaxflare.render._step import SampleRecords, _splat, batch_records, record_values
+from jaxflare.rendering import SampleRecords, batch_records, plan_render, radiance_scale, record_values, splat
+from jaxflare.scenes import load_scene
 
 
 class FixedSamples(eqx.Module):
@@ -35,7 +35,7 @@ class FixedSamples(eqx.Module):
 
     records: SampleRecords
     setup: eqx.Module
-    """The renderer's :class:`jaxflare.render._step.RenderSetup` (lights, spectral tables, lens)."""
+    """The renderer's :class:`jaxflare.rendering.RenderSetup` (lights, spectral tables, lens)."""
     path_interfaces: Int[Array, "P 2"]
     """Reflecting interfaces (j, i) of each path; (-1, -1) for the primary path (the core)."""
     flare: Array
@@ -49,52 +49,45 @@ class FixedSamples(eqx.Module):
 def _fit_scene(scene):
     """The scene as a fit samples it: no culling, since a fit may brighten any path (tints up to
     :data:`fitting._fit.TINT_MAX`), so every path keeps its samples."""
-    from jaxflare.scenes._scene import load_scene
-
     scene = load_scene(scene) if isinstance(scene, (str, bytes)) or hasattr(scene, "__fspath__") else scene
     return dataclasses.replace(scene, render=dataclasses.replace(scene.render, cull_threshold=0.0))
 
 
+_draw = eqx.filter_jit(batch_records)
+
+
 def _batches(scene, samples: int, seed: int, method: str, quality: str, paths=None):
-    """The render's preparation and a generator of its batches' sample records (one list per
-    batch): the same samples :func:`jaxflare.render` draws for this seed (and these ``paths``)."""
-    prepared = prepare_render(_fit_scene(scene), quality, seed, samples=samples, method=method, paths=paths)
-    draw = eqx.filter_jit(batch_records)
+    """The render's plan and a generator of its batches' sample records (one list per batch):
+    the samples :func:`jaxflare.render` draws for this seed (and these ``paths``), from the plan's
+    key schedule and sampling tables after the pilot."""
+    plan = plan_render(_fit_scene(scene), quality, seed, samples=samples, method=method, paths=paths)
 
     def batches():
-        for b in range(prepared.batches):
-            yield [_without_index(r) for r in draw(prepared.setup, jax.random.fold_in(jax.random.fold_in(prepared.key, 2), b))]
+        for b in range(plan.batches):
+            yield [_without_index(r) for r in _draw(plan.setup, plan.batch_key(b))]
 
-    return prepared, batches
-
-
-def _path_interfaces(prepared) -> np.ndarray:
-    return np.array([p if p is not None else (-1, -1) for p in prepared.paths_all], np.int32)
+    return plan, batches
 
 
-def scene_interface_tints(scene, num_interfaces: int) -> np.ndarray:
-    """The camera's ``coating_tints`` as an ``(I, 3)`` array (1 where none is set)."""
-    tints = np.ones((num_interfaces, 3))
-    for interface, rgb in scene.camera.coating_tints:
-        tints[interface] = rgb
-    return tints
+def _path_interfaces(plan) -> np.ndarray:
+    return np.array([p if p is not None else (-1, -1) for p in plan.paths], np.int32)
 
 
 def fixed_samples(scene, *, samples: int = 2**20, seed: int = 0, method: str = "exact", quality: str = "preview", paths=None) -> FixedSamples:
     """Draw and trace ``samples`` samples of ``scene`` once (in float32, as a render does). The
     records of every sample are kept, so memory grows with ``samples`` (about 60 bytes each)."""
-    prepared, batches = _batches(scene, samples, seed, method, quality, paths)
+    plan, batches = _batches(scene, samples, seed, method, quality, paths)
     flat = [records for batch in batches() for records in batch]
     records = jax.tree.map(lambda *xs: jnp.concatenate(xs), *flat)
     return FixedSamples(
-        records=records, setup=prepared.setup, path_interfaces=jnp.asarray(_path_interfaces(prepared)),
-        flare=jnp.asarray([p is not None for p in prepared.paths_all]), to_radiance=jnp.asarray(_to_radiance(prepared)),
-        resolution=tuple(prepared.scene.camera.resolution), num_interfaces=prepared.lens.num_interfaces,
+        records=records, setup=plan.setup, path_interfaces=jnp.asarray(_path_interfaces(plan)),
+        flare=jnp.asarray([p is not None for p in plan.paths]), to_radiance=jnp.asarray(_to_radiance(plan)),
+        resolution=tuple(plan.scene.camera.resolution), num_interfaces=plan.lens.num_interfaces,
     )
 
 
-def _to_radiance(prepared) -> float:
-    return radiance_scale(prepared.lens, prepared.pitch) / prepared.batches
+def _to_radiance(plan) -> float:
+    return radiance_scale(plan.lens, plan.pixel_pitch_mm) / plan.batches
 
 
 class PathImages(eqx.Module):
@@ -141,27 +134,6 @@ def _gained_lights(lights, gain):
     return eqx.tree_at(lambda l: (l.rgb, l.spectral_rgb), lights, (lights.rgb * gain, lights.spectral_rgb * jnp.mean(gain, axis=1)[:, None, None]))
 
 
-def _pooled_splat(buffer, layer, column, row, value, keep, pixel_weight, block: int):
-    """Bilinear splat (as the renderer's) straight into ``block`` x ``block`` sums of pixels,
-    each pixel weighted by ``pixel_weight`` (H, W). ``buffer``: (Y, Hb, Wb, 3)."""
-    num_layers, height_b, width_b, channels = buffer.shape
-    height, width = pixel_weight.shape
-    x = column - 0.5
-    y = row - 0.5
-    x0 = jnp.floor(x)
-    y0 = jnp.floor(y)
-    fx = x - x0
-    fy = y - y0
-    flat = buffer.reshape(-1, channels)
-    outside = num_layers * height_b * width_b
-    for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
-        xi = jnp.clip((x0 + dx).astype(jnp.int32), 0, width - 1)
-        yi = jnp.clip((y0 + dy).astype(jnp.int32), 0, height - 1)
-        index = jnp.where(keep, (layer * height_b + yi // block) * width_b + xi // block, outside)
-        flat = flat.at[index].add((value * (w * pixel_weight[yi, xi])[:, None]).astype(flat.dtype), mode="drop")
-    return flat.reshape(buffer.shape)
-
-
 PATH_IMAGE_BYTES = 2**30
 """Largest path-image stack (float64) a fit builds; above it the fit uses the samples."""
 FULL_IMAGE_BYTES = 2**27
@@ -184,14 +156,14 @@ def path_images(
     ``samples``), weighted by ``pixel_weight`` and summed over ``block`` x ``block`` pixels.
     ``per_light_colour``: one image per light and colour channel, so light gains can be fitted.
     ``paths``: only these ghost paths (default: all of the lens's)."""
-    prepared, batches = _batches(scene, samples, seed, method, quality, paths)
-    setup = prepared.setup
-    width, height = prepared.scene.camera.resolution
+    plan, batches = _batches(scene, samples, seed, method, quality, paths)
+    setup = plan.setup
+    width, height = plan.scene.camera.resolution
     if height % block or width % block:
         raise ValueError(f"block must divide the resolution {width} x {height}, got {block}")
     weight = jnp.ones((height, width), jnp.float32) if pixel_weight is None else jnp.asarray(pixel_weight, jnp.float32)
-    flare_slot = np.full(len(prepared.paths_all), -1, np.int32)
-    flare_paths = [k for k, p in enumerate(prepared.paths_all) if p is not None]
+    flare_slot = np.full(len(plan.paths), -1, np.int32)
+    flare_paths = [k for k, p in enumerate(plan.paths) if p is not None]
     flare_slot[flare_paths] = np.arange(len(flare_paths))
     num_lights = int(setup.lights.kind.shape[0])
     gains = jnp.asarray(_unit_gains(num_lights, per_light_colour), jnp.float32)
@@ -207,7 +179,7 @@ def path_images(
                 lights = _gained_lights(setup.lights, gains[k])
                 values = record_values(records, lights, setup.spectral, setup.path_fresnel, ones, dirt, setup.front.radius_mm)
                 layer = jnp.clip(slot[records.path], 0) * gains.shape[0] + k
-                buffer = _pooled_splat(buffer, layer, records.column, records.row, values, keep, splat_weight, splat_block)
+                buffer = splat(buffer, layer, records.column, records.row, values, keep, pixel_weight=splat_weight, block=splat_block)
         return buffer
 
     num_images = len(flare_paths) * gains.shape[0]
@@ -219,7 +191,7 @@ def path_images(
     buffer = jnp.zeros((num_images, height // splat_block, width // splat_block, 3), jnp.float32)
     for batch in batches():
         buffer = accumulate(buffer, batch, splat_weight, splat_block)
-    scale = _to_radiance(prepared)
+    scale = _to_radiance(plan)
     full = None
     if keep_full:
         full = np.asarray(buffer).reshape(len(flare_paths), gains.shape[0], height, width, 3) * np.float32(scale)
@@ -227,8 +199,8 @@ def path_images(
     else:
         images = np.asarray(buffer, np.float64).reshape(len(flare_paths), gains.shape[0], height // block, width // block, 3) * scale
     return PathImages(
-        images=jnp.asarray(images), full_images=None if full is None else jnp.asarray(full), path_interfaces=jnp.asarray(_path_interfaces(prepared)[flare_paths]), block=block,
-        resolution=(width, height), num_interfaces=prepared.lens.num_interfaces, num_lights=num_lights, samples=samples, seed=seed,
+        images=jnp.asarray(images), full_images=None if full is None else jnp.asarray(full), path_interfaces=jnp.asarray(_path_interfaces(plan)[flare_paths]), block=block,
+        resolution=(width, height), num_interfaces=plan.lens.num_interfaces, num_lights=num_lights, samples=samples, seed=seed,
         method=method, quality=quality, paths=None if paths is None else tuple(tuple(p) for p in paths),
     )
 
@@ -257,10 +229,10 @@ def flare_render(
 ):
     """The flare image (every flare path) of ``scene`` with the given interface tints and light
     gains, from the same samples :func:`path_images` uses for this seed, batch by batch."""
-    prepared, batches = _batches(scene, samples, seed, method, quality, paths)
-    setup = prepared.setup
-    width, height = prepared.scene.camera.resolution
-    tints = _path_tints(jnp.asarray(_path_interfaces(prepared)), jnp.asarray(interface_tints, jnp.float32))
+    plan, batches = _batches(scene, samples, seed, method, quality, paths)
+    setup = plan.setup
+    width, height = plan.scene.camera.resolution
+    tints = _path_tints(jnp.asarray(_path_interfaces(plan)), jnp.asarray(interface_tints, jnp.float32))
     lights = setup.lights if light_gain is None else _gained_lights(setup.lights, jnp.asarray(light_gain, jnp.float32))
     dirt = setup.effects.dirt if dirt is None else jnp.asarray(dirt, jnp.float32)
 
@@ -269,13 +241,13 @@ def flare_render(
         for records in batch:
             values = record_values(records, lights, setup.spectral, setup.path_fresnel, tints, dirt, setup.front.radius_mm)
             keep = records.hit & setup.path_is_flare[records.path]
-            buffer = _splat(buffer, jnp.zeros_like(records.path), records.column, records.row, values, keep)
+            buffer = splat(buffer, jnp.zeros_like(records.path), records.column, records.row, values, keep)
         return buffer
 
     buffer = jnp.zeros((1, height, width, 3), jnp.float32)
     for batch in batches():
         buffer = accumulate(buffer, batch)
-    return np.asarray(buffer[0], np.float64) * _to_radiance(prepared)
+    return np.asarray(buffer[0], np.float64) * _to_radiance(plan)
 
 
 def path_image_model(
@@ -323,19 +295,12 @@ def render_image(
     in the renderer's pixel units."""
     setup = samples.setup
     records = samples.records
-    tints = path_tints(samples, interface_tints.astype(records.geometry.dtype))
+    tints = path_tints(samples, interface_tints.astype(records.flux_factor.dtype))
     lights = setup.lights if light_gain is None else _gained_lights(setup.lights, light_gain)
     dirt = setup.effects.dirt if dirt is None else dirt
     values = record_values(records, lights, setup.spectral, setup.path_fresnel, tints, dirt, setup.front.radius_mm)
     keep = records.hit & (samples.flare[records.path] | include_core)
     width, height = samples.resolution
     buffer = jnp.zeros((1, height, width, 3), values.dtype)
-    image = _splat(buffer, jnp.zeros_like(records.path), records.column, records.row, values, keep)[0]
+    image = splat(buffer, jnp.zeros_like(records.path), records.column, records.row, values, keep)[0]
     return image * samples.to_radiance.astype(values.dtype)
-
-
-def as_float64(samples):
-    """Samples or path images with every float array in float64 (fits run in float64; needs jax x64)."""
-    return jax.tree.map(lambda x: x.astype(jnp.float64) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) else x, samples)
-
-

@@ -19,7 +19,7 @@ Anything that is not linear (a JPEG, an sRGB-encoded PNG) must be decoded first;
 
 Files
 -----
-* OpenEXR (``.exr``, via :func:`jaxflare.io._exr.read_exr`): any layer by name. With ``layer=None`` the
+* OpenEXR (``.exr``, via :func:`jaxflare.io.read_linear_image`): any layer by name. With ``layer=None`` the
   default layer ``""`` is used, or the only layer if the file has just one; a file with several
   layers and no default one needs ``layer=``. RGB, RGBA (alpha dropped) or Y (grey, broadcast to
   RGB). Values are taken as they are (EXR is linear by convention).
@@ -55,17 +55,17 @@ import warnings
 
 import numpy as np
 
+from jaxflare.io import read_linear_image, write_exr
+
 __all__ = ["PLATE_FORMATS", "Plate", "PlateQuantisationWarning", "load_plate", "save_plate"]
 
 PLATE_FORMATS = "OpenEXR (.exr), 16-bit PNG (.png) or 16-bit TIFF (.tif, .tiff)"
 """The plate formats :func:`load_plate` reads, for messages (8-bit PNG/TIFF are read with a warning)."""
 
-_PILLOW_EXTENSIONS = (".png", ".tif", ".tiff")
-_EXR_EXTENSIONS = (".exr",)
+_PLATE_EXTENSIONS = (".exr", ".png", ".tif", ".tiff")
+_MASK_FORMATS = "OpenEXR (.exr), PNG (.png) or TIFF (.tif, .tiff)"
 _ENCODINGS = ("linear", "srgb")
 _LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 / sRGB primaries
-# Pillow modes read as they are (after dropping alpha); any other mode is converted to RGB first.
-_DIRECT_MODES = {"L", "LA", "RGB", "RGBA", "I", "I;16", "I;16B", "I;16L", "I;16N", "F"}
 
 
 class PlateQuantisationWarning(UserWarning):
@@ -124,150 +124,6 @@ class Plate:
         return self.width, self.height
 
 
-# --------------------------------------------------------------------------------------------------
-# Reading images
-
-
-def _format_error(what: str, path: str, reason: str) -> ValueError:
-    formats = PLATE_FORMATS if what == "plate" else "OpenEXR (.exr), PNG (.png) or TIFF (.tif, .tiff)"
-    return ValueError(f"cannot read {what} {path!r}: {reason}; {what}s must be {formats}")
-
-
-def _rawmode(tile_args: object) -> str | None:
-    if isinstance(tile_args, str):
-        return tile_args
-    if isinstance(tile_args, tuple) and tile_args and isinstance(tile_args[0], str):
-        return tile_args[0]
-    return None
-
-
-def _swap_endianness(tile_args: object) -> object:
-    def swap(rawmode: str) -> str:
-        return rawmode.replace(";16B", ";16#").replace(";16L", ";16B").replace(";16#", ";16L")
-
-    if isinstance(tile_args, str):
-        return swap(tile_args)
-    return (swap(tile_args[0]), *tile_args[1:])  # type: ignore[index]
-
-
-def _is_16bit_colour(image: object) -> bool:
-    """Whether Pillow would narrow this image's 16-bit channels to 8 bits (colour PNG/TIFF)."""
-    if image.mode not in ("RGB", "RGBA", "LA", "L"):  # type: ignore[attr-defined]
-        return False
-    rawmodes = [_rawmode(tile.args) for tile in image.tile]  # type: ignore[attr-defined]
-    return any(rawmode is not None and ";16" in rawmode for rawmode in rawmodes)
-
-
-def _read_16bit_colour(path: str) -> np.ndarray:
-    """Read a 16-bit-per-channel colour PNG/TIFF in full. Pillow unpacks such files to 8 bits (the
-    high byte of each value); decoding the same data a second time with the byte order swapped
-    yields the low bytes, and the two make up the 16-bit values."""
-    from PIL import Image
-
-    halves = []
-    for swapped in (False, True):
-        with Image.open(path) as image:
-            if swapped:
-                image.tile = [tile._replace(args=_swap_endianness(tile.args)) for tile in image.tile]
-            image.load()
-            halves.append(np.asarray(image).astype(np.uint16))
-    return (halves[0] << 8) | halves[1]
-
-
-def _read_pillow(path: str, what: str) -> tuple[np.ndarray, int | None]:
-    """Pixels as (H, W, C) float64 in [0, 1] (or as stored for float images), alpha dropped, and the
-    bit depth of an integer image (None for float images)."""
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as image:
-            sixteen_bit_colour = _is_16bit_colour(image)
-            if not sixteen_bit_colour:
-                image.load()
-                if image.mode == "1":
-                    image = image.convert("L")
-                elif image.mode in ("P", "PA"):
-                    image = image.convert("RGBA")
-                elif image.mode not in _DIRECT_MODES:  # CMYK, YCbCr, LAB, RGBX, ...
-                    image = image.convert("RGB")
-                mode = image.mode
-                pixels = np.asarray(image)
-            else:
-                mode = image.mode
-        if sixteen_bit_colour:
-            try:
-                pixels = _read_16bit_colour(path)
-            except (OSError, ValueError, KeyError, SyntaxError) as error:
-                raise ValueError(
-                    f"cannot read the 16-bit {mode} {what} {path!r} in full ({type(error).__name__}: {error}); "
-                    "save it as an OpenEXR file instead"
-                ) from None
-    except (UnidentifiedImageError, OSError, SyntaxError) as error:
-        raise _format_error(what, path, f"not a readable image ({type(error).__name__}: {error})") from None
-    if pixels.ndim == 2:
-        pixels = pixels[..., None]
-    if pixels.ndim != 3:
-        raise _format_error(what, path, f"unexpected pixel array shape {pixels.shape} (mode {mode!r})")
-    if mode in ("LA", "RGBA"):
-        pixels = pixels[..., :-1]
-    if pixels.dtype == np.uint8:
-        return pixels.astype(np.float64) / 255.0, 8
-    if pixels.dtype.kind == "u" and pixels.dtype.itemsize == 2:
-        return pixels.astype(np.float64) / 65535.0, 16
-    if pixels.dtype.kind == "i":  # mode "I": Pillow's 32-bit container
-        low, high = int(pixels.min()), int(pixels.max())
-        if low < 0 or high > 65535:
-            raise ValueError(
-                f"{what} {path!r}: integer values span [{low}, {high}], beyond 16 bits; save it as a 16-bit image or an EXR"
-            )
-        return pixels.astype(np.float64) / 65535.0, 16
-    if pixels.dtype.kind == "f":
-        return pixels.astype(np.float64), None
-    raise _format_error(what, path, f"unsupported pixel type {pixels.dtype} (mode {mode!r})")
-
-
-def _read_exr_layer(path: str, layer: str | None, what: str) -> tuple[np.ndarray, str]:
-    from jaxflare.io._exr import read_exr
-
-    try:
-        layers, _ = read_exr(path)
-    except ValueError as error:
-        raise _format_error(what, path, str(error)) from None
-    listing = ", ".join(repr(name) for name in layers)
-    if layer is None:
-        if "" in layers:
-            layer = ""
-        elif len(layers) == 1:
-            layer = next(iter(layers))
-        else:
-            raise ValueError(f"{what} {path!r} has several layers and no default one: {listing}; choose one with layer=...")
-    elif layer not in layers:
-        raise ValueError(f"{what} {path!r} has no layer {layer!r}; its layers are: {listing}")
-    pixels = layers[layer]
-    if pixels.shape[-1] == 4:
-        pixels = pixels[..., :3]
-    return pixels.astype(np.float64), layer
-
-
-def _read_image(path: str | os.PathLike, layer: str | None, what: str) -> tuple[np.ndarray, str, str, int | None]:
-    """(pixels (H, W, C) float64 with C in {1, 3}, path, layer, integer bit depth or None)."""
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"no such {what} file: {path!r}")
-    extension = os.path.splitext(path)[1].lower()
-    if extension in _EXR_EXTENSIONS:
-        pixels, layer = _read_exr_layer(path, layer, what)
-        return pixels, path, layer, None
-    if extension in _PILLOW_EXTENSIONS:
-        if layer not in (None, ""):
-            raise ValueError(f"{what} {path!r}: layer={layer!r} given, but only EXR files have layers")
-        pixels, bits = _read_pillow(path, what)
-        if pixels.shape[-1] not in (1, 3):
-            raise ValueError(f"{what} {path!r} has {pixels.shape[-1]} channels; expected 1 (grey) or 3 (RGB)")
-        return pixels, path, "", bits
-    raise _format_error(what, path, f"unsupported extension {extension or '(none)'!r}")
-
-
 def _srgb_to_linear(values: np.ndarray) -> np.ndarray:
     """The inverse sRGB transfer function (IEC 61966-2-1), extended to negative values by symmetry."""
     magnitude = np.abs(values)
@@ -286,7 +142,8 @@ def _size_text(size: tuple[int, int]) -> str:
 def _mask_array(mask: str | os.PathLike | np.ndarray, shape: tuple[int, int], plate_path: str) -> np.ndarray:
     plate_size = (shape[1], shape[0])
     if isinstance(mask, (str, os.PathLike)):
-        pixels, mask_path, _, _ = _read_image(mask, None, "mask")
+        image = read_linear_image(mask, what="mask", extensions=_PLATE_EXTENSIONS, formats=_MASK_FORMATS)
+        pixels, mask_path = image.pixels, image.path
         where = f"mask {mask_path!r}"
     else:
         pixels = np.asarray(mask)
@@ -370,8 +227,9 @@ def load_plate(
             raise ValueError(f"expected_size must be (width, height) in pixels, got {expected_size!r}")
         expected_size = (int(expected_size[0]), int(expected_size[1]))
 
-    pixels, path, layer, bits = _read_image(path, layer, "plate")
-    if bits == 8:
+    image = read_linear_image(path, what="plate", layer=layer, extensions=_PLATE_EXTENSIONS, formats=PLATE_FORMATS)
+    pixels, path, layer = image.pixels, image.path, image.layer
+    if image.bits == 8:
         warnings.warn(
             f"plate {path!r} is an 8-bit image: faint flares (ghosts are often a few thousandths of the light's own "
             "image) are quantised to steps of 1/255; prefer a 16-bit PNG/TIFF or an EXR",
@@ -415,8 +273,6 @@ def save_plate(path: str | os.PathLike, rgb: np.ndarray, *, layer: str = "", pix
     EXR plate at ``path`` (float32 by default; ``pixel_type="half"`` for float16), in ``layer``
     ("" = the default layer). Values must be finite. For tests and synthetic plates; read it back
     with :func:`load_plate`."""
-    from jaxflare.io._exr import write_exr
-
     array = np.asarray(rgb)
     if array.ndim == 2:
         array = array[..., None]

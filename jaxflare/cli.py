@@ -19,7 +19,7 @@ import warnings
 
 
 def _load(name: str, zoom: int = 0):
-    from jaxflare.io._lens_files import load_lens
+    from .io import load_lens
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -50,7 +50,7 @@ def _lens_table(names: list[str]) -> str:
 
 
 def _lens_info(name: str, zoom: int, top: int) -> str:
-    from jaxflare.io._plot import rank_ghost_paths
+    from .optics import rank_ghost_paths
 
     lens = _load(name, zoom)
     lines = [lens.describe()]
@@ -78,9 +78,8 @@ def _lens_info(name: str, zoom: int, top: int) -> str:
 
 
 def _demo(out_dir: str, samples: int | None = None) -> int:
-    from jaxflare.io._lens_files import bundled_lens_names
-    from jaxflare.io._plot import save_cross_section
-    from jaxflare.scenes._scene import demo_scene_path
+    from .io import bundled_lens_names, save_cross_section
+    from .scenes import demo_scene_path
 
     names = bundled_lens_names()
     print("Bundled lenses:")
@@ -93,7 +92,7 @@ def _demo(out_dir: str, samples: int | None = None) -> int:
 
 
 def _render(scene_path: str, output: str, quality, seed: int, png: bool, samples, method) -> int:
-    from jaxflare.render._render import render
+    from .rendering import render
 
     if not output.lower().endswith(".exr"):
         raise ValueError(f"-o/--output must end in .exr, got {output!r}")
@@ -182,7 +181,7 @@ def _parse_ghost(text: str):
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from jaxflare.optics._prescription import LensFormatError
+    from .optics import LensFormatError
 
     try:
         if args.command == "demo":
@@ -192,13 +191,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "render":
             return _render(args.scene, args.output, args.quality, args.seed, args.png, args.samples, args.method)
         if args.lens_command == "list":
-            from jaxflare.io._lens_files import bundled_lens_names
+            from .io import bundled_lens_names
 
             print(_lens_table(bundled_lens_names()))
         elif args.lens_command == "info":
             print(_lens_info(args.name, args.zoom, args.top))
         elif args.lens_command == "plot":
-            from jaxflare.io._plot import save_cross_section
+            from .io import save_cross_section
 
             print(save_cross_section(_load(args.name, args.zoom), args.output, ghost_path=_parse_ghost(args.ghost)))
         elif args.lens_command == "convert":
@@ -213,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
 def _fit(args) -> int:
     import fitting
 
-    from jaxflare.scenes._scene import load_scene
+    from .scenes import load_scene
 
     scene = load_scene(args.scene)
     params = tuple(p.strip() for p in args.params.split(",") if p.strip())
@@ -240,13 +239,11 @@ def _fit(args) -> int:
 
 
 def _convert(source: str, target: str) -> None:
-    from jaxflare.io._atomic import write_text_atomic
-    from jaxflare.io._lens_toml import lens_toml_text
-    from jaxflare.io._lens_files import read_prescription
+    from .io import lens_toml_text, read_prescription, write_text_atomic
 
     prescription = read_prescription(source)
     if target.lower().endswith(".zmx"):
-        from jaxflare.io._zemax import zmx_text
+        from .io import zmx_text
 
         write_text_atomic(target, zmx_text(prescription))
     elif target.lower().endswith(".toml"):

@@ -14,10 +14,6 @@ import pytest
 import jaxflare
 
 
-def lens_from_toml(text: str, filename: str = "test.toml") -> jaxflare.Lens:
-    return jaxflare.build_lens(jaxflare.parse_lens_toml(text, filename))
-
-
 @pytest.fixture(scope="session")
 def biotar() -> jaxflare.Lens:
     return jaxflare.load_lens("zeiss_biotar")

@@ -70,7 +70,6 @@ import functools
 import math
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
@@ -311,33 +310,36 @@ def _spectral_table_cached(colour_space: str, band_nm: tuple[float, float], step
 # Per-sample lookups (JAX)
 
 
-def _interp_rows(grid: Array, table: Array, wavelength_nm: ArrayLike) -> Array:
-    """Piecewise-linear interpolation of ``table`` (L, ...) at ``wavelength_nm`` (any shape), clamped."""
-    return _interp_rows_jit(grid, table, jnp.asarray(wavelength_nm, dtype=grid.dtype))
+def grid_position(grid: Array, wavelength_nm: Array) -> tuple[Array, Array]:
+    """Where wavelengths fall on a uniform wavelength grid: the node below (int, clamped to
+    ``[0, L - 2]``) and the fraction of the way to the next node (wavelengths outside the grid are
+    clamped onto its ends). The one grid interpolation of the package: spectral responses, lights'
+    spectra and the paths' Fresnel tables all use it."""
+    position = jnp.clip((wavelength_nm - grid[0]) / (grid[1] - grid[0]), 0, grid.shape[0] - 1)
+    below = jnp.clip(jnp.floor(position).astype(jnp.int32), 0, grid.shape[0] - 2)
+    return below, position - below
 
 
-@jax.jit
-def _interp_rows_jit(grid: Array, table: Array, lam: Array) -> Array:
-    lam = jnp.clip(lam, grid[0], grid[-1])
-    idx = jnp.clip(jnp.searchsorted(grid, lam, side="right") - 1, 0, grid.shape[0] - 2)
-    g0, g1 = grid[idx], grid[idx + 1]
-    f = (lam - g0) / (g1 - g0)
-    f = f.reshape(f.shape + (1,) * (table.ndim - 1))
-    return table[idx] * (1 - f) + table[idx + 1] * f
+def interpolate_on_grid(grid: Array, table: Array, wavelength_nm: ArrayLike) -> Array:
+    """Piecewise-linear interpolation of ``table`` (L, ...) over the uniform ``grid`` (L,) at
+    ``wavelength_nm`` (any shape S; the result has shape S + table.shape[1:]), clamped."""
+    below, fraction = grid_position(grid, jnp.asarray(wavelength_nm, dtype=grid.dtype))
+    fraction = fraction.reshape(fraction.shape + (1,) * (table.ndim - 1))
+    return table[below] * (1 - fraction) + table[below + 1] * fraction
 
 
 def rgb_response_at(table: SpectralTable, wavelength_nm: ArrayLike) -> Float[Array, "N 3 3"]:
     """``K(lambda)`` at the given wavelengths (nm, shape ``(N,)`` or any shape ``S`` -> ``S + (3, 3)``).
 
     A light of output-space RGB ``c`` contributes ``rgb_response_at(table, lam) @ c`` at ``lam``."""
-    return _interp_rows(table.wavelength_nm, table.rgb_response, wavelength_nm)
+    return interpolate_on_grid(table.wavelength_nm, table.rgb_response, wavelength_nm)
 
 
 def spectrum_response_at(table: SpectralTable, wavelength_nm: ArrayLike) -> Float[Array, "N 3"]:
     """``r(lambda)`` at the given wavelengths (nm, shape ``(N,)`` or any shape ``S`` -> ``S + (3,)``).
 
     A spectral light with value ``S`` at ``lam`` contributes ``S * spectrum_response_at(table, lam)``."""
-    return _interp_rows(table.wavelength_nm, table.spectrum_response, wavelength_nm)
+    return interpolate_on_grid(table.wavelength_nm, table.spectrum_response, wavelength_nm)
 
 
 # ----------------------------------------------------------------------------------------------

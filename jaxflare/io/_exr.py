@@ -52,7 +52,7 @@ from collections.abc import Mapping
 import numpy as np
 import OpenEXR
 
-from jaxflare.io._atomic import atomic_output_path
+from ._atomic import atomic_output_path
 
 __all__ = ["COMPRESSIONS", "HALF_CLIPPED_ATTRIBUTE", "HALF_MAX", "read_exr", "write_exr"]
 
@@ -220,16 +220,11 @@ def _layer_and_suffix(channel_name: str) -> tuple[str, str]:
     return layer, suffix
 
 
-def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, object]]:
-    """Read an EXR written by :func:`write_exr` (or any single-part scanline/tiled EXR laid out the same way).
-
-    Returns ``(layers, header)``: ``layers`` maps a layer name ("" for the unprefixed channels) to a
-    float32 ``(H, W, C)`` array with channels ordered R, G, B[, A] (or Y alone), default layer first,
-    the others sorted by name; ``header`` holds the file's attributes except ``channels``, with
-    ``compression`` as its lower-case name (e.g. ``"zip"``) and custom attributes as stored (str,
-    int, float). Raises ``FileNotFoundError`` for a missing file and ``ValueError`` for a file that
-    is not an EXR or whose channels do not form R,G,B[,A] / Y layers.
-    """
+def read_exr_channels(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, object]]:
+    """The float channels of a single-part EXR by their full names (e.g. ``"R"``, ``"ghost.G"``),
+    and its header (``compression`` as its lower-case name). Raises ``FileNotFoundError`` for a
+    missing file and ``ValueError`` for a file that is not a readable single-part EXR, or has
+    subsampled or non-float channels."""
     path = os.fspath(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"no such EXR file: {path!r}")
@@ -245,25 +240,14 @@ def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, 
         raise ValueError(f"cannot read the pixel data of OpenEXR file {path!r} (damaged or truncated?)")
     if len(exr.parts) != 1:
         raise ValueError(f"{path!r} has {len(exr.parts)} parts; read_exr reads single-part files only")
-
-    grouped: dict[str, dict[str, np.ndarray]] = {}
+    channels: dict[str, np.ndarray] = {}
     for channel_name, channel in exr.channels().items():
         if channel.xSampling != 1 or channel.ySampling != 1:
             raise ValueError(f"{path!r}: channel {channel_name!r} is subsampled; not supported")
         pixels = channel.pixels
         if pixels.dtype.kind != "f":
             raise ValueError(f"{path!r}: channel {channel_name!r} has non-float pixels ({pixels.dtype})")
-        layer, suffix = _layer_and_suffix(channel_name)
-        grouped.setdefault(layer, {})[suffix] = pixels
-
-    layers: dict[str, np.ndarray] = {}
-    for layer in sorted(grouped, key=lambda name: (name != "", name)):
-        by_suffix = grouped[layer]
-        order = next((names for names in _CHANNELS_BY_COUNT.values() if set(names) == set(by_suffix)), None)
-        if order is None:
-            raise ValueError(f"{path!r}: layer {layer!r} has channels {sorted(by_suffix)}; expected R,G,B, R,G,B,A or Y")
-        layers[layer] = np.stack([np.asarray(by_suffix[suffix], dtype=np.float32) for suffix in order], axis=-1)
-
+        channels[channel_name] = pixels
     attributes: dict[str, object] = {}
     for key, value in exr.header().items():
         if key == "channels":
@@ -271,4 +255,29 @@ def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, 
         if key == "compression":
             value = _COMPRESSION_NAMES.get(value, str(value))
         attributes[key] = value
+    return channels, attributes
+
+
+def read_exr(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, object]]:
+    """Read an EXR written by :func:`write_exr` (or any single-part scanline/tiled EXR laid out the same way).
+
+    Returns ``(layers, header)``: ``layers`` maps a layer name ("" for the unprefixed channels) to a
+    float32 ``(H, W, C)`` array with channels ordered R, G, B[, A] (or Y alone), default layer first,
+    the others sorted by name; ``header`` holds the file's attributes except ``channels``, with
+    ``compression`` as its lower-case name (e.g. ``"zip"``) and custom attributes as stored (str,
+    int, float). Raises ``FileNotFoundError`` for a missing file and ``ValueError`` for a file that
+    is not an EXR or whose channels do not form R,G,B[,A] / Y layers.
+    """
+    channels, attributes = read_exr_channels(path)
+    grouped: dict[str, dict[str, np.ndarray]] = {}
+    for channel_name, pixels in channels.items():
+        layer, suffix = _layer_and_suffix(channel_name)
+        grouped.setdefault(layer, {})[suffix] = pixels
+    layers: dict[str, np.ndarray] = {}
+    for layer in sorted(grouped, key=lambda name: (name != "", name)):
+        by_suffix = grouped[layer]
+        order = next((names for names in _CHANNELS_BY_COUNT.values() if set(names) == set(by_suffix)), None)
+        if order is None:
+            raise ValueError(f"{os.fspath(path)!r}: layer {layer!r} has channels {sorted(by_suffix)}; expected R,G,B, R,G,B,A or Y")
+        layers[layer] = np.stack([np.asarray(by_suffix[suffix], dtype=np.float32) for suffix in order], axis=-1)
     return layers, attributes

@@ -6,9 +6,8 @@ import difflib
 import os
 from importlib import resources
 
-from jaxflare.optics._lens import Lens, build_lens
-from jaxflare.io._lens_toml import read_lens_toml
-from jaxflare.optics._prescription import LensPrescription
+from ..optics import Lens, LensPrescription, build_lens
+from ._lens_toml import read_lens_toml
 
 
 def _bundled_directory():
@@ -30,7 +29,7 @@ def read_prescription(source: str | os.PathLike) -> LensPrescription:
     text = os.fspath(source)
     lower = text.lower()
     if lower.endswith(".zmx"):
-        from jaxflare.io._zemax import read_zmx
+        from ._zemax import read_zmx
 
         return read_zmx(text)
     if lower.endswith(".toml") or os.sep in text or os.path.exists(text):

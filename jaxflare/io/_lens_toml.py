@@ -10,7 +10,7 @@ import tomllib
 from collections.abc import Mapping
 from typing import Any
 
-from jaxflare.optics._prescription import (
+from ..optics import (
     DEFAULT_COATING,
     SURFACE_KINDS,
     UNCOATED,

@@ -7,34 +7,8 @@ import os
 
 import numpy as np
 
-from jaxflare.io._atomic import atomic_output_path
-from jaxflare.optics._lens import Lens
-from jaxflare.optics._trace import GhostPath, ghost_paths, path_events, path_fresnel_factor, trace
-
-
-def _meridional_sag(lens: Lens, surface: int, y: np.ndarray) -> np.ndarray:
-    """Sag (mm) of a surface along y in the y-z plane (cylinders with power in x are flat there)."""
-    c = float(lens.curvature_per_mm[surface])
-    k = float(lens.conic[surface])
-    if int(lens.surface_kind[surface]) == 1:
-        return np.zeros_like(y)
-    rho2 = y**2
-    root = np.sqrt(np.maximum(1.0 - (1.0 + k) * c * c * rho2, 0.0))
-    sag = c * rho2 / (1.0 + root)
-    for index, coefficient in enumerate(np.asarray(lens.aspheric_coefficients[surface], np.float64)):
-        sag = sag + coefficient * rho2 ** (index + 2)
-    return sag
-
-
-def strongest_ghost_path(lens: Lens, wavelength_nm: float = 550.0) -> GhostPath:
-    """The ghost path with the largest on-axis Fresnel factor (a quick ranking; see ``rank_ghost_paths``)."""
-    return rank_ghost_paths(lens, wavelength_nm)[0][0]
-
-
-def rank_ghost_paths(lens: Lens, wavelength_nm: float = 550.0) -> list[tuple[GhostPath, float]]:
-    """Ghost paths sorted by their on-axis (normal-incidence) Fresnel factor, strongest first."""
-    factors = [(path, float(path_fresnel_factor(lens, path, wavelength_nm))) for path in ghost_paths(lens)]
-    return sorted(factors, key=lambda item: -item[1])
+from ._atomic import atomic_output_path
+from ..optics import GhostPath, Lens, active_event_count, path_events, strongest_ghost_path, surface_sag_mm, trace
 
 
 def _fan(lens: Lens, field_angle_deg: float, count: int, start_z: float) -> tuple[np.ndarray, np.ndarray]:
@@ -48,7 +22,7 @@ def _fan(lens: Lens, field_angle_deg: float, count: int, start_z: float) -> tupl
 
 def _draw_rays(ax, lens: Lens, origins, directions, path, colour, wavelength_nm, width):
     result = trace(lens, origins, directions, wavelength_nm, path, record_events=True)
-    active = int(path_events(lens, path)[:, 3].sum())
+    active = active_event_count(path_events(lens, path))
     history = np.asarray(result.event_positions)[:active]
     valid = np.asarray(result.valid)
     sensor = np.asarray(result.positions)
@@ -82,7 +56,7 @@ def plot_cross_section(
     profiles = []
     for s in range(lens.num_surfaces):
         y = np.linspace(-semi[s], semi[s], 81)
-        profiles.append((vertex_z[s] + _meridional_sag(lens, s, y), y))
+        profiles.append((vertex_z[s] + np.asarray(surface_sag_mm(lens, s, np.zeros_like(y), y), np.float64), y))
     for s in range(lens.num_surfaces - 1):
         if lens.media[s] is None:
             continue

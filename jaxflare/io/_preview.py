@@ -26,7 +26,8 @@ import os
 
 import numpy as np
 
-from jaxflare.io._atomic import atomic_output_path
+from ..colour import srgb_encode
+from ._atomic import atomic_output_path
 
 __all__ = ["REC709_LUMINANCE", "tone_map", "write_png"]
 
@@ -34,11 +35,6 @@ REC709_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 _AUTO_PERCENTILE = 99.9
 _AUTO_TARGET = 0.8  # value of the curve x / (1 + x) the percentile is mapped to
 _AUTO_SCALED = _AUTO_TARGET / (1.0 - _AUTO_TARGET)  # the x with x / (1 + x) == _AUTO_TARGET
-
-
-def _srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """The sRGB transfer function (IEC 61966-2-1) for values in [0, 1]."""
-    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.power(linear, 1.0 / 2.4) - 0.055)
 
 
 def _auto_scale(rgb: np.ndarray) -> float:
@@ -93,7 +89,7 @@ def tone_map(
         exposed = np.where(image > 0.0, image * scale, 0.0)
         # x / (1 + x), with overflowed (infinite) values at the curve's limit 1
         rolled = np.where(np.isinf(exposed), 1.0, exposed / (1.0 + exposed))
-    encoded = _srgb_encode(np.clip(rolled, 0.0, 1.0))
+    encoded = srgb_encode(rolled)  # clipped to [0, 1]
     return np.clip(np.round(encoded * 255.0), 0, 255).astype(np.uint8)
 
 

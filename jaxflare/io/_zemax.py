@@ -33,8 +33,8 @@ import os
 import re
 from decimal import Decimal, InvalidOperation
 
-from jaxflare.io._atomic import write_bytes_atomic
-from jaxflare.optics._prescription import AIR, LensFormatError, LensPrescription, MediumSpec, SurfaceSpec
+from ._atomic import write_bytes_atomic
+from ..optics import AIR, LensFormatError, LensPrescription, MediumSpec, SurfaceSpec
 
 __all__ = ["decode_zmx_bytes", "parse_zmx", "read_zmx", "write_zmx", "zmx_text"]
 

@@ -49,7 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflare.optics._lens import Lens, _default_coating
+from ._lens import Lens, _default_coating
 
 __all__ = ["COATING_PRESETS", "with_coating", "with_coating_layers"]
 

@@ -12,8 +12,8 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from . import _paraxial
-from jaxflare.optics._glass import Glass, UnknownGlassError, find_glass, model_glass
-from jaxflare.optics._prescription import (
+from ._glass import D_LINE_NM, Glass, UnknownGlassError, find_glass, model_glass
+from ._prescription import (
     DEFAULT_COATING,
     UNCOATED,
     CoatingSpec,
@@ -22,9 +22,8 @@ from jaxflare.optics._prescription import (
     MediumSpec,
     SurfaceSpec,
 )
+from ._surface import SurfaceKind
 
-SURFACE_KIND_CODES = {"spherical": 0, "cylindrical_x": 1, "cylindrical_y": 2}
-D_LINE_NM = 587.56
 STATED_INDEX_TOLERANCE = 0.002
 """Largest |n_d(catalog) - n_d(stated)| accepted silently for a named glass."""
 
@@ -51,7 +50,8 @@ class Lens(eqx.Module):
     aspheric_coefficients: Float[Array, "S K"]
     """Even-asphere coefficients A4, A6, ... per surface (zero-padded)."""
     surface_kind: Int[Array, " S"]
-    """0 rotationally symmetric, 1 cylindrical with power in x, 2 cylindrical with power in y."""
+    """A :class:`~jaxflare.optics.SurfaceKind` per surface (0 rotationally symmetric, 1 cylindrical
+    with power in x, 2 cylindrical with power in y)."""
     thickness_mm: Float[Array, " S"]
     """Axial gap after each surface (the last one reaches the prescription's sensor plane)."""
     semi_aperture_mm: Float[Array, " S"]
@@ -120,7 +120,7 @@ class Lens(eqx.Module):
         n = self.refractive_indices(wavelength_nm)
         kinds = np.asarray(self.surface_kind)
         curvature = np.asarray(self.curvature_per_mm, np.float64)
-        no_power = kinds == (SURFACE_KIND_CODES["cylindrical_y"] if plane == "x" else SURFACE_KIND_CODES["cylindrical_x"])
+        no_power = kinds == (SurfaceKind.CYLINDRICAL_Y if plane == "x" else SurfaceKind.CYLINDRICAL_X)
         curvature = np.where(no_power, 0.0, curvature)
         return _paraxial.surface_powers(curvature, n[:-1], n[1:]), n
 
@@ -443,7 +443,7 @@ def build_lens(prescription: LensPrescription, zoom_position: int = 0) -> Lens:
         curvature_per_mm=jnp.asarray([s.curvature_per_mm for s in surfaces]),
         conic=jnp.asarray([s.conic for s in surfaces]),
         aspheric_coefficients=jnp.asarray(aspheric),
-        surface_kind=jnp.asarray([SURFACE_KIND_CODES[s.kind] for s in surfaces], dtype=jnp.int32),
+        surface_kind=jnp.asarray([SurfaceKind.from_label(s.kind) for s in surfaces], dtype=jnp.int32),
         thickness_mm=jnp.asarray(thickness),
         semi_aperture_mm=jnp.asarray(semi_aperture),
         sellmeier_b=jnp.asarray(sellmeier_b),

@@ -22,7 +22,7 @@ import dataclasses
 import math
 from typing import Literal
 
-SurfaceKind = Literal["spherical", "cylindrical_x", "cylindrical_y"]
+SurfaceKindName = Literal["spherical", "cylindrical_x", "cylindrical_y"]
 """Shape family of a surface.
 
 ``spherical`` is rotationally symmetric about the optical axis (sphere, flat, conic or even
@@ -112,7 +112,7 @@ class SurfaceSpec:
     semi_aperture_mm: float
     """Clear semi-aperture in mm; ``math.nan`` when the source does not give one (it is then
     derived from the paraxial marginal and chief rays when the lens is built, with a warning)."""
-    kind: SurfaceKind = "spherical"
+    kind: SurfaceKindName = "spherical"
     conic: float = 0.0
     aspheric_coefficients: tuple[float, ...] = ()
     """Even-asphere coefficients A4, A6, A8, ... (sag terms A4 r^4 + A6 r^6 + ...), in mm^(1-2k)."""

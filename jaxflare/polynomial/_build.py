@@ -17,16 +17,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflare.io._atomic import write_bytes_atomic
-from jaxflare.optics._lens import Lens
-from jaxflare.polynomial._domain import DEFAULT_WAVELENGTH_RANGE_NM, PathDomain, as_float64, half_field_of_view_deg, make_domain, sample_variables
-from jaxflare.polynomial._least_squares import build_polynomial, sample_region
-from jaxflare.polynomial._system import PathSystem, PathSystemReport
-from jaxflare.polynomial._validate import validate
-from jaxflare.polynomial._basis import monomial_exponents
-from jaxflare.optics._trace import GhostPath, _check_path
+from .._version import __version__
+from ..io import write_bytes_atomic
+from ..optics import GhostPath, Lens, cast_floating, check_ghost_path, ghost_paths, half_field_of_view_deg
+from ._basis import monomial_exponents
+from ._constructions import AbstractConstruction, construction_from
+from ._domain import DEFAULT_WAVELENGTH_RANGE_NM, PathDomain, make_domain, sample_variables
+from ._least_squares import build_polynomial, sample_region
+from ._system import PathSystem, PathSystemReport
+from ._validate import validate
 
-Construction = Literal["fit", "taylor"]
 DEFAULT_DEGREE = 5
 CACHE_FORMAT = 2
 
@@ -34,8 +34,6 @@ CACHE_FORMAT = 2
 def _code_version() -> str:
     """The package version and a digest of the source of every module a path system depends on
     (the optics and polynomial packages): a cached system is rebuilt when any of them changes."""
-    from jaxflare._version import __version__
-
     digest = hashlib.sha256()
     root = Path(__file__).resolve().parent.parent
     for package in ("optics", "polynomial"):
@@ -66,7 +64,7 @@ def path_system(
     path: GhostPath | None = None,
     *,
     degree: int = DEFAULT_DEGREE,
-    construction: Construction = "fit",
+    construction: str | AbstractConstruction = "least-squares",
     max_field_angle_deg: float | None = None,
     wavelength_range_nm: tuple[float, float] = DEFAULT_WAVELENGTH_RANGE_NM,
     sparse_terms: int | None = None,
@@ -86,12 +84,14 @@ def path_system(
         lens: the lens; its iris and clear apertures are the ones tested at call time.
         path: ``None`` for the primary path or a ghost path ``(j, i)`` as in :func:`jaxflare.trace`.
         degree: total degree of the polynomials (1 to 9).
-        construction: ``"fit"`` (least squares on exact traces over the domain; the default: it is
-            accurate across the whole domain) or ``"taylor"`` (expansion about the axis, 2012).
+        construction: ``"least-squares"`` (least squares on exact traces over the domain; the
+            default: it is accurate across the whole domain; ``"fit"`` is its former name),
+            ``"taylor"`` (expansion about the axis, 2012), or an
+            :class:`~jaxflare.polynomial.AbstractConstruction`.
         max_field_angle_deg: largest angle between an incoming ray and the axis; default the lens's
             half field of view. Lights further off-axis need a wider domain.
         wavelength_range_nm: the band the system is built for (default the visible 380-780 nm).
-        sparse_terms: keep at most this many terms per output (``"fit"`` only), chosen by the size
+        sparse_terms: keep at most this many terms per output (least squares only), chosen by the size
             of their contribution, and evaluate only the union of the kept terms.
         max_clip_events: clear apertures (besides the iris) tested per ray; the ones that clip the
             most rays are chosen; rays lost elsewhere show up as ``unmodelled_clip_fraction``.
@@ -108,13 +108,10 @@ def path_system(
         cache: True for :func:`default_cache_dir`, a directory, or False for no cache.
         seed: seed of the fit and validation samples.
     """
-    path = _check_path(lens, path)
+    path = check_ghost_path(lens, path)
     if not (isinstance(degree, int) and 1 <= degree <= 9):
         raise ValueError(f"degree must be an integer from 1 to 9, got {degree!r}")
-    if construction not in ("fit", "taylor"):
-        raise ValueError(f"construction must be 'fit' or 'taylor', got {construction!r}")
-    if sparse_terms is not None and (construction != "fit" or not (isinstance(sparse_terms, int) and sparse_terms >= 1)):
-        raise ValueError(f"sparse_terms must be a positive integer and needs construction='fit', got {sparse_terms!r} with {construction!r}")
+    construction = construction_from(construction, sparse_terms)
     if fallback not in ("exact", "none"):
         raise ValueError(f"fallback must be 'exact' or 'none', got {fallback!r}")
     if not 0 < fallback_fraction <= 1:
@@ -126,7 +123,8 @@ def path_system(
     if fit_rays is None:
         fit_rays = max(2048, 8 * len(exponents))
     settings = dict(
-        path=path, degree=degree, construction=construction, domain=dataclasses.asdict(domain), sparse_terms=sparse_terms,
+        path=path, degree=degree, construction=construction.name, domain=dataclasses.asdict(domain),
+        sparse_terms=getattr(construction, "sparse_terms", None),
         max_clip_events=max_clip_events, fit_rays=fit_rays, validation_rays=validation_rays, tolerance_mm=tolerance_mm,
         max_mask_mismatch=max_mask_mismatch, seed=seed,
     )
@@ -142,8 +140,8 @@ def path_system(
                 pass  # a damaged cache entry is rebuilt and overwritten
     start = time.perf_counter()
     with jax.enable_x64(True):
-        lens64 = as_float64(lens)
-        system, region = build_polynomial(lens64, path, domain, exponents, construction, sparse_terms, max_clip_events, fit_rays, seed, tolerance_mm)
+        lens64 = cast_floating(lens, jnp.float64)
+        system, region = build_polynomial(lens64, path, domain, exponents, construction, max_clip_events, fit_rays, seed, tolerance_mm)
         # half uniform over the domain (every cell of the trust table), half where rays get through
         rng = np.random.default_rng(seed + 1)
         samples = sample_variables(validation_rays - validation_rays // 2, rng)
@@ -152,12 +150,12 @@ def path_system(
         system = eqx.tree_at(lambda s: (s.trust_table, s.estimate_limit_mm), system, (jnp.asarray(table), jnp.asarray(estimate_limit_mm)))
         arrays = {name: np.asarray(getattr(system, name)) for name in _ARRAY_FIELDS}
     report = PathSystemReport(
-        construction=construction, degree=degree, num_terms=len(system.exponents), fit_rays=len(arrays["fit_variables"]),
+        construction=construction.name, degree=degree, num_terms=len(system.exponents), fit_rays=len(arrays["fit_variables"]),
         validation_rays=validation_rays, clip_surfaces=system.clip_surfaces, tolerance_um=tolerance_mm * 1e3,
         estimate_limit_um=estimate_limit_mm * 1e3, build_seconds=time.perf_counter() - start, **summary,
     )
     static = dict(
-        path=path, degree=system.degree, construction=construction, exponents=system.exponents, domain=domain,
+        path=path, degree=system.degree, construction=construction.name, exponents=system.exponents, domain=domain,
         num_stop_passes=system.num_stop_passes, clip_event_rows=system.clip_event_rows, clip_surfaces=system.clip_surfaces,
         report=report,
     )
@@ -181,8 +179,6 @@ def _assemble(lens: Lens, arrays: dict, static: dict, fallback: str, fallback_fr
 
 def path_systems(lens: Lens, paths: Sequence[GhostPath | None] | None = None, **options) -> dict:
     """Path systems for several paths (default: every ghost path of ``lens``), keyed by path."""
-    from jaxflare.optics._trace import ghost_paths
-
     paths = ghost_paths(lens) if paths is None else list(paths)
     if options.get("max_field_angle_deg") is None:  # trace the field of view once, not once per path
         options["max_field_angle_deg"] = half_field_of_view_deg(lens)

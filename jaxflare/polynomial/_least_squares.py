@@ -1,14 +1,12 @@
-"""Building a path system's polynomial: fit samples, clipping events, the two constructions.
-
-``"fit"``: least squares against exact float64 traces of the lens with its clear apertures
-widened a little, on samples of the domain where rays get through. ``"taylor"``: the truncated
-Taylor expansion of :mod:`._taylor`, with the throughput fitted. Both produce the error estimator
-(the polynomial minus its degree-(d - 1) counterpart).
+"""Building a path system's polynomial: the samples it is fitted to (exact float64 traces of the
+lens with its clear apertures widened a little, where rays get through), its clipping events, and
+weighted least squares; the constructions themselves are in :mod:`._constructions`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -16,11 +14,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from jaxflare.optics._lens import Lens
-from jaxflare.polynomial._domain import TRUST_GRID, PathDomain, rays_from_variables, sample_variables
-from jaxflare.polynomial._system import AUXILIARY_DEGREE, PathSystem, precise_columns
-from jaxflare.polynomial._basis import monomials
-from jaxflare.optics._trace import TraceResult, _stop_pass_count, path_events, trace
+from ..optics import Lens, TraceResult, path_events, stop_pass_count, trace
+from ._basis import monomials
+from ._domain import TRUST_GRID, PathDomain, rays_from_variables, sample_variables
+from ._system import AUXILIARY_DEGREE, PathSystem, precise_columns
 
 _APERTURE_MARGIN = 1.03
 """Clear apertures are widened by this factor for the fit samples, so each polynomial is also
@@ -86,7 +83,7 @@ def _output_matrix(result: TraceResult, clip_rows: Sequence[int], clip_slots: in
     return jnp.stack(columns, axis=-1)
 
 
-def _weighted_least_squares(design: Array, targets: Array, weights: Array, support: Array | None) -> Array:
+def weighted_least_squares(design: Array, targets: Array, weights: Array, support: Array | None) -> Array:
     """Coefficients minimising sum_i w_i |design_i c - targets_i|^2 per output column (normal
     equations with a tiny ridge, Cholesky); ``support`` (M, O) restricts each column's terms."""
     weighted = design * weights[:, None]
@@ -112,7 +109,7 @@ _SAMPLE_BUCKET = 2048
 fit serves the paths of a lens."""
 
 
-def _fit_columns(wide: TraceResult, variables, exponents: np.ndarray, clip_rows, clip_slots: int, support=None):
+def fit_columns(wide: TraceResult, variables, exponents: np.ndarray, clip_rows, clip_slots: int, support=None):
     """Least-squares coefficients of every output on exact traces ``wide`` of the widened lens,
     and the error estimator: the sensor columns minus those of the fit without the top degree."""
     count = variables.shape[0]
@@ -144,15 +141,15 @@ def _fit_columns_jit(wide: TraceResult, variables, exponents_key, clip_rows, cli
     low = np.flatnonzero(totals <= AUXILIARY_DEGREE)
     if support is None:
         coefficients = jnp.zeros((len(exponents), targets.shape[1]), design.dtype)
-        coefficients = coefficients.at[:, precise].set(_weighted_least_squares(design, targets[:, precise], weights, None))
-        auxiliary_fit = _weighted_least_squares(design[:, low], targets[:, auxiliary], weights, None)
+        coefficients = coefficients.at[:, precise].set(weighted_least_squares(design, targets[:, precise], weights, None))
+        auxiliary_fit = weighted_least_squares(design[:, low], targets[:, auxiliary], weights, None)
         coefficients = coefficients.at[low[:, None], auxiliary[None, :]].set(auxiliary_fit)
     else:
         support = support.at[:, auxiliary].set(support[:, auxiliary] & jnp.asarray(totals <= AUXILIARY_DEGREE)[:, None])
-        coefficients = _weighted_least_squares(design, targets, weights, support)
+        coefficients = weighted_least_squares(design, targets, weights, support)
     lower = np.flatnonzero(totals < totals.max())
     lower_support = None if support is None else support[lower][:, :2]
-    lower_fit = _weighted_least_squares(design[:, lower], targets[:, :2], weights, lower_support)
+    lower_fit = weighted_least_squares(design[:, lower], targets[:, :2], weights, lower_support)
     estimator = coefficients[:, :2].at[lower].add(-lower_fit)
     return coefficients, estimator
 
@@ -162,12 +159,12 @@ def refit(system: PathSystem, lens: Lens) -> PathSystem:
     structure: path, terms, clipping events, domain, trust table). Differentiable with respect to
     the lens's arrays, so gradients of polynomial outputs with respect to lens parameters can be
     taken through it; the trust table and error limit are not re-validated."""
-    if system.construction != "fit":
-        raise ValueError("refit needs a system built with construction='fit'")
+    if system.construction != "least-squares":
+        raise ValueError("refit needs a system built with construction='least-squares'")
     variables = np.asarray(system.fit_variables, np.float64)
     exponents = np.asarray(system.exponents, np.int32)
     wide = trace_samples(widened_lens(lens), system.path, system.domain, variables, record_events=bool(system.clip_event_rows))
-    coefficients, estimator = _fit_columns(wide, variables, exponents, system.clip_event_rows, system.clip_active.shape[0])
+    coefficients, estimator = fit_columns(wide, variables, exponents, system.clip_event_rows, system.clip_active.shape[0])
     return eqx.tree_at(lambda s: (s.lens, s.coefficients, s.error_estimator), system, (lens, coefficients, estimator))
 
 
@@ -256,6 +253,17 @@ def _concatenate_rays(parts: Sequence[TraceResult]) -> TraceResult:
     )
 
 
+class FitSamples(NamedTuple):
+    """What a construction fits to: entrance variables, their exact traces through the widened
+    lens, the path's clipping events and its number of stop passes."""
+
+    variables: np.ndarray
+    traced: TraceResult
+    clip_rows: tuple[int, ...]
+    clip_slots: int
+    num_stop_passes: int
+
+
 def structure_arrays(events: np.ndarray, clip_surfaces: Sequence[int], slots: int) -> dict:
     """The path's event table and its clear-aperture test slots (``slots`` of them, the unused
     ones inactive), as the arrays a :class:`PathSystem` holds."""
@@ -267,59 +275,23 @@ def structure_arrays(events: np.ndarray, clip_surfaces: Sequence[int], slots: in
     )
 
 
-def build_polynomial(lens, path, domain, exponents, construction, sparse_terms, max_clip_events, fit_rays, seed, tolerance_mm):
+def build_polynomial(lens, path, domain, exponents, construction, max_clip_events, fit_rays, seed, tolerance_mm):
     """The polynomial (coefficients, error estimator, clipping events), not yet validated, and the
-    region of the domain where the fit samples got through (see :func:`fit_samples`)."""
+    region of the domain where the fit samples got through (see :func:`fit_samples`).
+    ``construction``: an :class:`~jaxflare.polynomial.AbstractConstruction`."""
     events = path_events(lens, path)
-    num_passes = _stop_pass_count(events, lens.stop_index)
+    num_passes = stop_pass_count(events, lens.stop_index)
     variables, wide, region = fit_samples(widened_lens(lens), path, domain, fit_rays, seed)
     clip_rows, clip_surfaces = _choose_clip_events(lens, events, wide, max_clip_events)
-    if construction == "fit":
-        coefficients, estimator = _fit_columns(wide, variables, exponents, clip_rows, max_clip_events)
-        if sparse_terms is not None and sparse_terms < len(exponents):
-            design = monomials(jnp.asarray(variables), exponents)
-            weights = wide.valid.astype(design.dtype)
-            contribution = jnp.abs(coefficients) * jnp.sqrt(jnp.sum(design**2 * weights[:, None], axis=0))[:, None]
-            rank = jnp.argsort(-contribution, axis=0)[:sparse_terms]
-            support = jnp.zeros(coefficients.shape, bool).at[rank, jnp.arange(coefficients.shape[1])[None, :]].set(True)
-            support = support.at[0].set(True)  # always keep the constant term
-            used = np.flatnonzero(np.asarray(support).any(axis=1))
-            exponents = exponents[used]
-            coefficients, estimator = _fit_columns(wide, variables, exponents, clip_rows, max_clip_events, support[used])
-    else:
-        from jaxflare.polynomial._taylor import taylor_path_coefficients
-
-        series = taylor_path_coefficients(
-            lens, path, int(exponents.max(initial=0)) if len(exponents) else 0,
-            entrance_z_mm=domain.entrance_z_mm, front_radius_mm=domain.entrance_radius_mm, sin_max_field=domain.sin_max_field,
-            wavelength_center_nm=domain.wavelength_center_nm, wavelength_half_width_nm=domain.wavelength_half_width_nm,
-            record_event_rows=clip_rows,
-        )
-        geometric = [series["sensor"][0], series["sensor"][1], series["direction"][0], series["direction"][1]]
-        for p in range(num_passes):
-            geometric += [series["stop"][p, 0], series["stop"][p, 1]]
-        for k in range(len(clip_rows)):
-            geometric += [series["events"][k, 0], series["events"][k, 1]]
-        geometric += [np.zeros(len(exponents))] * (2 * (max_clip_events - len(clip_rows)))
-        # the series carries geometry only: the Fresnel throughput (thin-film interference) is fitted
-        totals = exponents.sum(axis=1)
-        low = np.flatnonzero(totals <= AUXILIARY_DEGREE)
-        design = monomials(jnp.asarray(variables), exponents[low])
-        throughput = _weighted_least_squares(design, wide.throughput[:, None], wide.valid.astype(design.dtype), None)
-        coefficients = jnp.asarray(np.stack(geometric + [np.zeros(len(exponents))], axis=-1))
-        coefficients = coefficients.at[low, -1:].set(throughput)
-        auxiliary = np.setdiff1d(np.arange(coefficients.shape[1]), precise_columns(num_passes))
-        coefficients = coefficients.at[np.flatnonzero(totals > AUXILIARY_DEGREE)[:, None], auxiliary[None, :]].set(0.0)
-        top = totals == totals.max()
-        estimator = coefficients[:, :2] * jnp.asarray(top, coefficients.dtype)[:, None]  # the truncation term
+    samples = FitSamples(variables=variables, traced=wide, clip_rows=clip_rows, clip_slots=max_clip_events, num_stop_passes=num_passes)
+    coefficients, estimator, exponents = construction.coefficients(lens, path, domain, exponents, samples)
     system = PathSystem(
         lens=lens, coefficients=coefficients, trust_table=jnp.ones(TRUST_GRID, bool), path=path,
         fit_variables=jnp.asarray(variables), path_blocked=jnp.asarray(len(variables) == 0),
         error_estimator=estimator, estimate_limit_mm=jnp.asarray(tolerance_mm),
         **structure_arrays(events, clip_surfaces, max_clip_events),
-        degree=int(exponents.max(initial=0)), construction=construction, exponents=tuple(map(tuple, np.asarray(exponents).tolist())),
+        degree=int(exponents.max(initial=0)), construction=construction.name, exponents=tuple(map(tuple, np.asarray(exponents).tolist())),
         domain=domain, num_stop_passes=num_passes, clip_event_rows=clip_rows, clip_surfaces=clip_surfaces,
         report=None, fallback="none",
     )
     return system, region
-

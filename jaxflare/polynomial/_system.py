@@ -6,12 +6,15 @@ the lens, and wavelength) to the ray at the sensor, the ray at each pass through
 few clear apertures that clip the path most, and the Fresnel throughput. Its evaluation is one
 monomial table and one matrix product, whatever the number of lens elements.
 
-Two constructions (see :func:`path_system`):
+Two constructions (see :func:`path_system` and :mod:`._constructions`):
 
 - ``"taylor"``: the truncated Taylor expansion about the optical axis at the band's centre
   wavelength, composed surface by surface (Hullin, Hanika & Heidrich 2012; :mod:`._taylor`);
-- ``"fit"``: least squares against exact float64 traces sampled over the domain the scene needs
-  (as in lentil and Schrade et al. 2016), optionally sparse.
+- ``"least-squares"``: least squares against exact float64 traces sampled over the domain the
+  scene needs (as in lentil and Schrade et al. 2016), optionally sparse.
+
+In the renderer a :class:`PolynomialPathTracer` evaluates systems of one structure together,
+behind the same :class:`~jaxflare.optics.AbstractPathTracer` interface as the exact tracer.
 
 Every system is validated against the exact tracer when it is built: the measured errors are in
 :attr:`PathSystem.report`, and a table over the input domain marks the cells where the polynomial
@@ -31,10 +34,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxflare.optics._lens import Lens
-from jaxflare.polynomial._domain import PathDomain, cell_index, entrance_variables
-from jaxflare.polynomial._basis import graded_plan, monomial_rows
-from jaxflare.optics._trace import TraceResult, _inside_iris, _surface_sag_slope, _trace_events, ray_arguments
+from ..optics import AbstractPathTracer, EventTable, Lens, LossReason, TraceResult, inside_iris, ray_arguments, surface_sag_mm, trace_events
+from ._basis import graded_plan, monomial_rows
+from ._domain import PathDomain, cell_index, entrance_variables
 
 GhostPath = tuple[int, int]
 
@@ -176,8 +178,6 @@ class PathKernel(eqx.Module):
     fallback_fraction: float = eqx.field(static=True)
 
 
-EVALUATIONS = [0]
-"""How often the evaluator has been traced by JAX (tests use it to catch retracing)."""
 
 
 def precise_columns(num_stop_passes: int) -> np.ndarray:
@@ -229,16 +229,14 @@ def polynomial_outputs(system: "PathKernel", variables: Array) -> tuple[Array, A
 
 
 def _surface_z(lens: Lens, surface: int, x: Array, y: Array) -> Array:
-    kind = lens.surface_kind[surface]
-    rho2 = jnp.where(kind == 2, 0.0, x * x) + jnp.where(kind == 1, 0.0, y * y)
-    sag, _ = _surface_sag_slope(rho2, lens.curvature_per_mm[surface], lens.conic[surface], lens.aspheric_coefficients[surface])
     vertex_z = jnp.sum(lens.thickness_mm[:surface])
-    return vertex_z + sag
+    return vertex_z + surface_sag_mm(lens, surface, x, y)
 
 
-@eqx.filter_jit
-def evaluate(system: PathKernel, origins: Array, directions: Array, wavelength: Array) -> TraceResult:
-    EVALUATIONS[0] += 1
+@eqx.debug.assert_max_traces(max_traces=None)  # counts compilations: tests catch retracing with get_num_traces
+def _evaluate(system: PathKernel, origins: Array, directions: Array, wavelength: Array) -> TraceResult:
+    """A path kernel at (N, 3) ``origins`` and ``directions`` and (N,) ``wavelength``, with its exact
+    fallback (``system.fallback == "exact"``) for untrusted rays."""
     lens = system.lens
     dtype = origins.dtype
     count = origins.shape[0]
@@ -262,11 +260,11 @@ def evaluate(system: PathKernel, origins: Array, directions: Array, wavelength: 
     column = 4
     passes_ok = jnp.ones(count, bool)
     stop_positions = []
-    lost_at = jnp.full(count, -1, jnp.int32)
+    lost_at = jnp.full(count, LossReason.NOT_LOST, jnp.int32)
     for _ in range(system.num_stop_passes):
         x, y = out[:, column], out[:, column + 1]
         column += 2
-        inside = _inside_iris(x, y, lens.stop_radius_mm, lens.aperture_blades, lens.aperture_rotation_rad)
+        inside = inside_iris(x, y, lens.stop_radius_mm, lens.aperture_blades, lens.aperture_rotation_rad)
         inside = inside & (x * x + y * y <= lens.semi_aperture_mm[lens.stop_index] ** 2)
         lost_at = jnp.where(passes_ok & ~inside, lens.stop_index, lost_at)
         passes_ok = passes_ok & inside
@@ -282,7 +280,7 @@ def evaluate(system: PathKernel, origins: Array, directions: Array, wavelength: 
 
     valid = trusted & ~certainly_clipped & passes_ok & ~system.path_blocked
     lost_at = jnp.where(certainly_clipped, 0, lost_at)
-    lost_at = jnp.where(trusted, lost_at, -2)
+    lost_at = jnp.where(trusted, lost_at, LossReason.UNTRUSTED)
     positions = jnp.concatenate([sensor_xy, jnp.broadcast_to(lens.sensor_z_mm.astype(dtype), (count,))[:, None]], axis=-1)
     directions_out = jnp.concatenate([direction_xy, dz[:, None]], axis=-1)
     stops = jnp.stack(stop_positions, axis=1) if stop_positions else jnp.zeros((count, 0, 3), dtype)
@@ -300,6 +298,9 @@ def evaluate(system: PathKernel, origins: Array, directions: Array, wavelength: 
     return result
 
 
+evaluate = eqx.filter_jit(_evaluate)
+
+
 def _exact_fallback(system: PathKernel, result: TraceResult, origins, directions, wavelength) -> TraceResult:
     """Re-trace up to ``ceil(fallback_fraction * N)`` untrusted rays exactly (fixed shapes: the
     untrusted rays are gathered into a buffer of that size; any beyond it stay untrusted)."""
@@ -308,8 +309,8 @@ def _exact_fallback(system: PathKernel, result: TraceResult, origins, directions
     (index,) = jnp.nonzero(~result.trusted, size=capacity, fill_value=count)
     used = index < count
     take = jnp.where(used, index, 0)
-    exact = _trace_events(
-        system.lens, origins[take], directions[take], wavelength[take], system.events, system.num_stop_passes,
+    exact = trace_events(
+        system.lens, origins[take], directions[take], wavelength[take], EventTable.from_array(system.events), system.num_stop_passes,
     )
     target = jnp.where(used, index, count)  # out-of-range rows are dropped by the scatter
 
@@ -325,3 +326,37 @@ def _exact_fallback(system: PathKernel, result: TraceResult, origins, directions
         stop_positions=put(result.stop_positions, exact.stop_positions),
         trusted=put(result.trusted, jnp.ones_like(exact.valid)),
     )
+
+
+class PolynomialPathTracer(AbstractPathTracer):
+    """Path systems of one structure (same lens, degree, terms and stop passes) evaluated together.
+
+    ``kernels`` holds ``num_paths`` :class:`PathKernel` stacked along a leading axis; ``trace``
+    expects the rays grouped by path in equal blocks (``slot = repeat(arange(num_paths), n)``), as
+    the renderer draws them, and evaluates the blocks vmapped. Untrusted rays are re-traced exactly
+    up to ``fallback_capacity`` of each path's block (0: none; they come back invalid and
+    untrusted).
+    """
+
+    kernels: PathKernel
+    fallback_capacity: float = eqx.field(static=True)
+
+    @classmethod
+    def for_systems(cls, systems, fallback_capacity: float) -> PolynomialPathTracer:
+        """Stack ``systems`` (:class:`PathSystem`, one structure) with an exact fallback of
+        ``fallback_capacity`` (a fraction of each path's rays, in (0, 1], or 0 for none)."""
+        if fallback_capacity == 0:
+            kernels = [system.kernel(fallback="none") for system in systems]
+        else:
+            kernels = [dataclasses.replace(system, fallback_fraction=fallback_capacity).kernel(fallback="exact") for system in systems]
+        return cls(jax.tree.map(lambda *xs: jnp.stack(xs), *kernels), fallback_capacity)
+
+    @property
+    def num_paths(self) -> int:
+        return int(self.kernels.coefficients.shape[0])
+
+    def trace(self, origins: Array, directions: Array, wavelength_nm: Array, slot=None) -> TraceResult:
+        blocks = self.num_paths
+        origins, directions, wavelength_nm = (x.reshape((blocks, -1) + x.shape[1:]) for x in (origins, directions, wavelength_nm))
+        traced = jax.vmap(evaluate)(self.kernels, origins, directions, wavelength_nm)
+        return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), traced)

@@ -20,9 +20,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from jaxflare.optics._lens import Lens
-from jaxflare.polynomial._basis import NUM_VARIABLES, monomial_exponents
-from jaxflare.optics._trace import _BEHIND_TOLERANCE_MM, REFLECT, GhostPath, path_events
+from ..optics import BEHIND_TOLERANCE_MM, EventAction, GhostPath, Lens, path_events
+from ._basis import NUM_VARIABLES, monomial_exponents
 
 
 class _SeriesAlgebra:
@@ -152,7 +151,7 @@ class _PathTrace:
 
     def intersect(self, position: np.ndarray, direction: np.ndarray, surface: int) -> tuple[np.ndarray, np.ndarray]:
         """Hit point (3, M) in mm and unit normal (3, M) facing -z at the vertex, as in
-        ``_trace._intersect``: the first root ahead of the ray on the vertex sheet, chosen by the
+        ``jaxflare.optics.intersect``: the first root ahead of the ray on the vertex sheet, chosen by the
         constant terms, then (aspheres) Newton steps from that conic root."""
         alg = self.algebra
         c, k1 = self.curvature[surface], 1.0 + self.conic[surface]
@@ -175,7 +174,7 @@ class _PathTrace:
         if a[0] != 0.0:
             candidates.append((q[0] / a[0], q, a))
         usable = [
-            cand for cand in candidates if cand[0] >= -_BEHIND_TOLERANCE_MM and k1 * c * (p[2, 0] + cand[0] * d[2, 0]) <= 1.0
+            cand for cand in candidates if cand[0] >= -BEHIND_TOLERANCE_MM and k1 * c * (p[2, 0] + cand[0] * d[2, 0]) <= 1.0
         ]
         if not usable:
             raise self.invalid(surface, "has no intersection ahead on the vertex sheet of")
@@ -218,12 +217,12 @@ class _PathTrace:
     def deflect(self, direction: np.ndarray, normal: np.ndarray, surface: int, travel: int, action: int) -> np.ndarray:
         """Direction after reflecting or refracting (vector Snell law) at the surface."""
         alg = self.algebra
-        if action != REFLECT and self.same_medium[surface]:
+        if action != EventAction.REFLECT and self.same_medium[surface]:
             return direction  # a stop or dummy surface inside one medium
         cos_in = -np.sum(alg.mul(normal, direction), axis=0)
         if cos_in[0] < 0.0:
             normal, cos_in = -normal, -cos_in
-        if action == REFLECT:
+        if action == EventAction.REFLECT:
             return direction + 2.0 * alg.mul(cos_in, normal)
         eta = self.eta_forward[surface] if travel > 0 else self.eta_backward[surface]
         eta2, cos2 = alg.mul(np.stack([eta, cos_in]), np.stack([eta, cos_in]))

@@ -7,9 +7,9 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflare.polynomial._domain import TRUST_GRID, cell_index, rays_from_variables
-from jaxflare.polynomial._least_squares import trace_samples
-from jaxflare.polynomial._system import PathSystem, evaluate, polynomial_outputs
+from ._domain import TRUST_GRID, cell_index, rays_from_variables
+from ._least_squares import trace_samples
+from ._system import PathSystem, evaluate, polynomial_outputs
 
 _MIN_CELL_RAYS = 3
 """A cell with fewer validation samples than this is not trusted."""

@@ -1,0 +1,176 @@
+"""One lens surface, physically: its shape (sag), where a ray meets it (``intersect``), and what
+the ray does there (``refract`` by the vector form of Snell's law, or ``reflect``), plus the iris
+test at the aperture stop.
+
+Conventions (pbrt-v4's, in millimetres): the lens frame has z along the optical axis towards the
+sensor; a surface's vertex lies at ``vertex_z``; its sag ``z(rho^2)`` is a conic of vertex curvature
+``c`` (1/mm) and conic constant ``k`` plus an even asphere ``A4 rho^4 + A6 rho^6 + ...``. A
+cylindrical surface has power in one meridian only (:class:`SurfaceKind`). Directions are unit
+vectors; normals face the incoming light (``-z`` at the vertex).
+
+Every square root and division is guarded (:func:`safe_sqrt`, :func:`safe_divide`) so that values
+*and gradients* stay finite for rays that miss, clip or totally reflect: the tracer masks those rays
+out, and a NaN behind a mask would still poison a gradient.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array
+
+
+class SurfaceKind(enum.IntEnum):
+    """Shape family of a surface (the integer is what :class:`~jaxflare.Lens` stores per surface)."""
+
+    SPHERICAL = 0
+    """Rotationally symmetric about the axis: a sphere, flat, conic or even asphere."""
+    CYLINDRICAL_X = 1
+    """Power in the x-z plane only: the sag depends on x alone (the cylinder axis lies along y)."""
+    CYLINDRICAL_Y = 2
+    """Power in the y-z plane only."""
+
+    @property
+    def label(self) -> str:
+        """The name lens files use: ``"spherical"``, ``"cylindrical_x"`` or ``"cylindrical_y"``."""
+        return self.name.lower()
+
+    @classmethod
+    def from_label(cls, label: str) -> SurfaceKind:
+        return cls[label.upper()]
+
+
+def safe_sqrt(x: Array) -> Array:
+    """``sqrt(x)`` where ``x > 0``, else 0, with a finite gradient everywhere."""
+    positive = x > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
+
+
+def safe_divide(numerator: Array, denominator: Array) -> Array:
+    """``numerator / denominator`` where the denominator is non-zero, else 0 (finite gradients)."""
+    ok = denominator != 0
+    return jnp.where(ok, numerator / jnp.where(ok, denominator, 1.0), 0.0)
+
+
+def sag_and_slope(rho2: Array, curvature: Array, conic: Array, aspheric: Array) -> tuple[Array, Array]:
+    """Sag ``z(rho^2)`` (mm) and ``g = (dz/drho)/rho`` (1/mm) of a conic plus even asphere, guarded
+    beyond the conic's rim. ``aspheric``: the coefficients A4, A6, ... along its last axis."""
+    arg = 1.0 - (1.0 + conic) * curvature**2 * rho2
+    root = safe_sqrt(arg)
+    sag = safe_divide(curvature * rho2, 1.0 + root)
+    slope = safe_divide(curvature, root)
+    for k in range(aspheric.shape[-1]):  # A4 rho^4 + A6 rho^6 + ...
+        m = k + 2
+        slope = slope + 2 * m * aspheric[..., k] * rho2 ** (m - 1)
+        sag = sag + aspheric[..., k] * rho2**m
+    return sag, slope
+
+
+def meridian_weights(kind: Array) -> tuple[Array, Array]:
+    """``(wx, wy)``: 1 where the surface's shape depends on x (resp. y), 0 for a cylinder without
+    power in that meridian."""
+    wx = jnp.where(kind == SurfaceKind.CYLINDRICAL_Y, 0.0, 1.0)
+    wy = jnp.where(kind == SurfaceKind.CYLINDRICAL_X, 0.0, 1.0)
+    return wx, wy
+
+
+def surface_sag_mm(lens, surface: int, x: Array, y: Array) -> Array:
+    """Sag (mm, relative to the vertex) of ``lens``'s surface ``surface`` at lens-frame (x, y)."""
+    wx, wy = meridian_weights(lens.surface_kind[surface])
+    x, y = jnp.asarray(x), jnp.asarray(y)
+    sag, _ = sag_and_slope(wx * x * x + wy * y * y, lens.curvature_per_mm[surface], lens.conic[surface], lens.aspheric_coefficients[surface])
+    return sag
+
+
+BEHIND_TOLERANCE_MM = 1e-4
+"""A root up to this far behind the ray origin still counts: the origin lies on the previous surface,
+which may touch this one (cemented rims), and float32 positions carry about 1e-5 mm of rounding."""
+
+
+def intersect(origin, direction, vertex_z, curvature, conic, aspheric, kind, has_aspheres: bool):
+    """First intersection ahead of each ray with the vertex sheet of a surface.
+
+    ``origin``, ``direction``: (N, 3); the surface's parameters are scalars or (N,) (a surface per
+    ray). Returns ``(point (N, 3), unit normal (N, 3) facing -z, hit (N,))``; ``hit`` is False for
+    a miss, a surface behind the ray (sequential order violated, as where two surfaces cross) or a
+    hit only on the far sheet. Aspheres (``has_aspheres``, static) refine the conic root by Newton.
+    """
+    wx, wy = meridian_weights(kind)
+    px, py, pz = origin[:, 0], origin[:, 1], origin[:, 2] - vertex_z
+    dx, dy, dz = direction[:, 0], direction[:, 1], direction[:, 2]
+    c, k1 = curvature, 1.0 + conic
+    a = c * (wx * dx * dx + wy * dy * dy) + k1 * c * dz * dz
+    b = c * (wx * px * dx + wy * py * dy) - dz + k1 * c * pz * dz
+    g = c * (wx * px * px + wy * py * py) - 2.0 * pz + k1 * c * pz * pz
+    disc = b * b - a * g
+    # Both roots of a t^2 + 2 b t + g = 0, computed without cancellation. Keep the first one ahead of
+    # the ray (t >= 0) that lies on the vertex sheet of the quadric (k1 c z <= 1: the sheet through
+    # the vertex, whose normal faces -z); a root behind the ray or on the far sheet is not a hit.
+    root = safe_sqrt(disc)
+    sign = jnp.where(b >= 0, 1.0, -1.0)
+    q = -(b + sign * root)
+    roots = jnp.stack([safe_divide(g, q), safe_divide(q, a)])
+    exists = jnp.stack([q != 0, a != 0]) & (disc >= 0)
+    z_roots = pz + roots * dz
+    usable = exists & (roots >= -BEHIND_TOLERANCE_MM) & (k1 * c * z_roots <= 1.0)
+    first = jnp.where(usable[0] & (~usable[1] | (roots[0] <= roots[1])), 0, 1)
+    t = jnp.where(first == 0, roots[0], roots[1])
+    hit = jnp.where(first == 0, usable[0], usable[1])
+    t = jnp.where(hit, t, 0.0)
+    x, y, z = px + t * dx, py + t * dy, pz + t * dz
+    if has_aspheres:
+        for _ in range(4):  # Newton on f(t) = z(t) - sag(rho^2(t)), starting at the conic solution
+            rho2 = wx * x * x + wy * y * y
+            sag, slope = sag_and_slope(rho2, c, conic, aspheric)
+            f = z - sag
+            df = dz - slope * (wx * x * dx + wy * y * dy)
+            t = t - safe_divide(f, df)
+            x, y, z = px + t * dx, py + t * dy, pz + t * dz
+        rho2 = wx * x * x + wy * y * y
+        sag, slope = sag_and_slope(rho2, c, conic, aspheric)
+        hit = hit & (jnp.abs(z - sag) < 1e-4) & (1.0 - k1 * c * c * rho2 >= 0)
+        normal = jnp.stack([wx * x * slope, wy * y * slope, -jnp.ones_like(z)], axis=-1)
+    else:
+        # gradient of the quadric c rho^2 - 2 z + (1 + k) c z^2, halved (exact on the surface)
+        normal = jnp.stack([wx * c * x, wy * c * y, k1 * c * z - 1.0], axis=-1)
+    normal = normal / jnp.linalg.norm(normal, axis=-1, keepdims=True)
+    point = jnp.stack([x, y, z + vertex_z], axis=-1)
+    return point, normal, hit
+
+
+def facing_normal(normal: Array, direction: Array) -> tuple[Array, Array]:
+    """The normal turned to face the incoming ray, and the cosine of incidence in [0, 1]."""
+    cos_in = -jnp.sum(normal * direction, axis=-1)
+    facing = jnp.where(cos_in < 0, -1.0, 1.0)
+    return normal * facing[:, None], jnp.clip(cos_in * facing, 0.0, 1.0)
+
+
+def refract(direction: Array, normal: Array, cos_in: Array, eta: Array) -> tuple[Array, Array]:
+    """Snell's law in vector form: the refracted direction (not normalised) for the index ratio
+    ``eta = n_before / n_after``, and where the ray is totally internally reflected instead."""
+    k = 1.0 - eta**2 * (1.0 - cos_in**2)
+    refracted = eta[:, None] * direction + (eta * cos_in - safe_sqrt(k))[:, None] * normal
+    return refracted, k < 0
+
+
+def reflect(direction: Array, normal: Array, cos_in: Array) -> Array:
+    """The mirror direction about the (facing) normal."""
+    return direction + 2.0 * cos_in[:, None] * normal
+
+
+def inside_iris(x: Array, y: Array, radius: Array, blades: int, rotation: Array) -> Array:
+    """Point-in-iris test on the stop plane: a circle for ``blades == 0``, else a regular polygon
+    with its vertices on the circle of ``radius`` and the first vertex at angle ``rotation``.
+    A 0/1 test: no gradient flows through it."""
+    x, y, radius, rotation = (jax.lax.stop_gradient(v) for v in (x, y, radius, rotation))
+    if blades == 0:
+        return x * x + y * y <= radius * radius
+    apothem = radius * math.cos(math.pi / blades)
+    inside = jnp.ones_like(x, dtype=bool)
+    for k in range(blades):
+        angle = rotation + (k + 0.5) * 2.0 * math.pi / blades
+        inside = inside & (x * jnp.cos(angle) + y * jnp.sin(angle) <= apothem)
+    return inside

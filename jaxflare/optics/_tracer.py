@@ -1,0 +1,76 @@
+"""One interface for tracing rays along lens paths, whatever the method.
+
+:class:`AbstractPathTracer` is what the renderer and the fitting package call: rays in, a
+:class:`~jaxflare.TraceResult` out. A tracer holds one or several paths (stacked); each ray says
+which one it follows. Implementations are final: :class:`ExactPathTracer` here (the exact
+sequential trace), and the polynomial tracer of :mod:`jaxflare.polynomial`.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import numpy as np
+from jaxtyping import Array, ArrayLike, Int
+
+from ._lens import Lens
+from ._paths import EventTable, GhostPath, check_ghost_path, path_events, stop_pass_count
+from ._trace import TraceResult, ray_arguments, trace_events
+
+
+class AbstractPathTracer(eqx.Module):
+    """Traces rays along ``num_paths`` lens paths (stacked)."""
+
+    @property
+    @abc.abstractmethod
+    def num_paths(self) -> int:
+        """How many paths the tracer holds."""
+
+    @abc.abstractmethod
+    def trace(self, origins: Array, directions: Array, wavelength_nm: Array, slot: Int[Array, " N"] | None = None) -> TraceResult:
+        """Trace (N, 3) ``origins`` and ``directions`` (mm, lens frame) at (N,) ``wavelength_nm``;
+        ray ``n`` follows path ``slot[n]`` of the tracer (None: every ray the first path). See each
+        implementation for how the rays must be laid out."""
+
+    def __call__(self, origins: ArrayLike, directions: ArrayLike, wavelength_nm: ArrayLike = 587.56) -> TraceResult:
+        """Trace rays along the tracer's only path, with the argument checks of :func:`jaxflare.trace`."""
+        if self.num_paths != 1:
+            raise ValueError(f"this tracer holds {self.num_paths} paths: call trace() with a slot per ray")
+        return self.trace(*ray_arguments(origins, directions, wavelength_nm))
+
+
+class ExactPathTracer(AbstractPathTracer):
+    """The exact sequential trace (:func:`jaxflare.trace`) along one or several paths of a lens.
+
+    Rays may come in any order: each follows the event table of its own ``slot``.
+    """
+
+    lens: Lens
+    events: EventTable
+    """Columns of shape (P, E): one row per path."""
+    num_stop_passes: int = eqx.field(static=True, default=1)
+    """Stop crossings recorded in ``stop_positions`` (at most the paths' own count)."""
+
+    @classmethod
+    def for_paths(cls, lens: Lens, paths: Sequence[GhostPath | None], num_stop_passes: int | None = None) -> ExactPathTracer:
+        """A tracer for ``paths`` (None is the primary path) of ``lens``. ``num_stop_passes``
+        defaults to the fewest stop crossings of any of them (so a primary path records its one)."""
+        tables = [path_events(lens, check_ghost_path(lens, path)) for path in paths]
+        if num_stop_passes is None:
+            num_stop_passes = min(stop_pass_count(table, lens.stop_index) for table in tables)
+        return cls(lens, EventTable.from_array(np.stack(tables)), num_stop_passes)
+
+    @property
+    def num_paths(self) -> int:
+        return int(self.events.surface.shape[0])
+
+    def trace(self, origins: Array, directions: Array, wavelength_nm: Array, slot: Int[Array, " N"] | None = None) -> TraceResult:
+        if slot is None:
+            events = jax.tree.map(lambda column: column[0], self.events)
+        else:  # a path per ray (rays of several paths mixed in one batch)
+            events = jax.tree.map(lambda column: column[slot], self.events)
+        return trace_events(self.lens, origins, directions, wavelength_nm, events, self.num_stop_passes)
+

@@ -1,0 +1,294 @@
+"""A finished render: the flare image, its layers, and typed statistics.
+
+:class:`RenderStatistics` and :class:`PathStatistics` are frozen dataclasses that also read as
+mappings (``result.statistics["sensor_hit_rate"]``, ``result.statistics.paths[0].energy``); their
+``to_dict()`` is what the EXR header and JSON hold.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import warnings
+from collections.abc import Iterator, Mapping
+
+import numpy as np
+
+from .._version import __version__
+from ..colour import display_matrix, spectral_table
+from ..io import tone_map, write_exr, write_png
+from ..scenes import Scene
+from ._quality import radiance_scale
+
+
+class RenderWarning(UserWarning):
+    """A render finished but something in it deserves attention (e.g. dropped samples)."""
+
+
+class _Record(Mapping):
+    """A frozen dataclass that reads as a read-only mapping of its fields."""
+
+    def __getitem__(self, key: str):
+        if key not in self._names():
+            raise KeyError(key)
+        return getattr(self, key)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._names())
+
+    def __len__(self) -> int:
+        return len(self._names())
+
+    @classmethod
+    def _names(cls) -> tuple[str, ...]:
+        return tuple(field.name for field in dataclasses.fields(cls))
+
+    def to_dict(self) -> dict:
+        """Plain Python values (lists, dicts, numbers, strings), ready for JSON."""
+        return {name: _plain(getattr(self, name)) for name in self._names()}
+
+
+def _plain(value):
+    if isinstance(value, _Record):
+        return value.to_dict()
+    if isinstance(value, Mapping):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PathStatistics(_Record):
+    """What one lens path put into the image, and how it was traced."""
+
+    path: list[int] | str
+    """``[j, i]`` for a ghost path, ``"primary"`` for the lights' own images (the core)."""
+    method: str
+    """``"exact"`` or ``"polynomial"``."""
+    enabled: bool
+    """False for a culled flare (not rendered)."""
+    energy: float
+    """Luminance the path put into the image (pixel values times pixel area, summed)."""
+    rgb: list[float]
+    energy_bound: float
+    """The culling bound of its energy (same units)."""
+    samples: int
+    hit_rate: float
+    """Fraction of its samples that reached the image."""
+    polynomial_degree: int | None
+    polynomial_validation_trusted_fraction: float | None
+    polynomial_untrusted_sample_fraction: float | None
+    exact_fallback_capacity: float | None
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class RenderStatistics(_Record):
+    """Samples, hit rates, culling, layers, per-path energies, times and settings of a render."""
+
+    jaxflare_version: str
+    lens: str
+    resolution: list[int]
+    samples: int
+    pilot_samples: int
+    batches: int
+    rays_per_batch: int
+    flare_paths: int
+    paths_rendered: int
+    culled_paths: int
+    culled_energy_bound: float
+    """Sum of the culled flares' energy bounds, relative to the brightest flare."""
+    polynomial_paths: int
+    exact_paths: int
+    sampling: str
+    table_updates: int
+    lens_pass_rate: float
+    sensor_hit_rate: float
+    core_hit_rate: float | None
+    unevaluated_fraction: float
+    """Samples dropped because their path system did not trust them and the fallback was full."""
+    f_number: float
+    pixel_pitch_mm: float
+    field_angle_deg: float
+    lights: list[str]
+    layers: list[dict]
+    """Per EXR layer: its name and the paths it holds."""
+    setup_seconds: float
+    compile_seconds: float
+    render_seconds: float
+    total_seconds: float
+    settings: dict
+    paths: list[PathStatistics]
+
+    def header_dict(self) -> dict:
+        """The statistics the EXR header holds (everything but the settings and the paths)."""
+        return {k: v for k, v in self.to_dict().items() if k not in ("settings", "paths")}
+
+
+@dataclasses.dataclass
+class RenderResult:
+    """A rendered flare.
+
+    ``image``: (H, W, 4) linear RGBA of every flare together (alpha = min(1, max(R, G, B)); add the
+    RGB to the plate). ``layers``: name -> (H, W, 3): ``core`` (the lights' primary images, not a
+    flare), ``flare_JJ_II`` per flare with its own layer (ghost path (J, I), two digits each, e.g.
+    ``flare_07_04``), ``flares_merged`` (all other flares); and ``variance`` (H, W, 1), the
+    per-pixel variance of the flare luminance. ``statistics``: a :class:`RenderStatistics`
+    (samples, hit rate, per-path energies, times, settings).
+    """
+
+    image: np.ndarray
+    layers: dict[str, np.ndarray]
+    statistics: RenderStatistics
+    scene: Scene
+
+    def write_exr(self, path, *, pixel_type: str | None = None, compression: str | None = None) -> str:
+        """Multi-layer OpenEXR: the RGBA flare as the default layer plus every layer; lens, settings
+        and statistics in the header (``jaxflare/...`` attributes). Written atomically."""
+        settings = self.scene.render
+        layers = {"": self.image}
+        layers.update(self.layers)
+        statistics = self.statistics
+        header = {
+            "jaxflare/version": statistics.jaxflare_version,
+            "jaxflare/lens": statistics.lens,
+            "jaxflare/scene": self.scene.source or "",
+            "jaxflare/settings": json.dumps(statistics.settings),
+            "jaxflare/statistics": json.dumps(statistics.header_dict()),
+            "jaxflare/layers": json.dumps(statistics.layers),
+        }
+        write_exr(path, layers, pixel_type=pixel_type or settings.exr_pixel_type, compression=compression or settings.exr_compression, header=header)
+        return os.fspath(path)
+
+    def preview(self, *, include_core: bool = True, exposure_stops: float | None = None) -> np.ndarray:
+        """A tone-mapped sRGB 8-bit preview of the flare (and the core)."""
+        colour_space = self.statistics.settings["colour_space"]
+        flare = self.image[..., :3]
+        if exposure_stops is None:  # expose for the flares: the core would otherwise set the exposure
+            luminance = flare @ np.asarray(spectral_table(colour_space).luminance_weights)
+            lit = luminance[luminance > 0]
+            level = float(np.percentile(lit, 99.5)) if lit.size else 0.0
+            exposure_stops = math.log2(4.0 / level) if level > 0 else 0.0
+        rgb = flare + (self.layers["core"] if include_core and "core" in self.layers else 0.0)
+        return tone_map(rgb, to_srgb_matrix=display_matrix(colour_space), exposure_stops=exposure_stops)
+
+    def write_png(self, path, **options) -> str:
+        write_png(path, self.preview(**options))
+        return os.fspath(path)
+
+
+def render_result(plan, acc, render_seconds: float, table_updates: int, *, time_now: float) -> RenderResult:
+    """The image, layers and statistics of a finished render (the accumulators of its batches)."""
+    settings, lens, pitch = plan.settings, plan.lens, plan.pixel_pitch_mm
+    layers_plan, culling = plan.layers, plan.culling
+    paths_all, num_flares, batches = plan.paths, plan.num_flares, plan.batches
+    width, height = plan.scene.camera.resolution
+    luminance = plan.luminance_weights
+
+    path_samples = np.asarray(acc.path_samples, np.float64)
+    hits = np.asarray(acc.path_hits, np.float64)
+    passed = np.asarray(acc.path_passed, np.float64)
+    unevaluated = np.asarray(acc.path_unevaluated, np.float64)
+    drawn = float(path_samples.sum())
+    dropped = float(unevaluated.sum() / max(drawn, 1.0))
+    if dropped > 0.01:
+        warnings.warn(
+            f"{dropped:.1%} of the samples were dropped: their path systems do not trust them and the exact "
+            "fallback was full. Their light is missing from the image; render with method='auto' or 'exact'.",
+            RenderWarning,
+            stacklevel=3,
+        )
+
+    # normalisation: mean over batches, per unit pixel area, as camera-equation radiance
+    num_layers = layers_plan.count
+    to_radiance = radiance_scale(lens, pitch)
+    scale = np.full(num_layers, to_radiance / batches)
+    flare_scale = scale[0]
+    if settings.weights == "sensor-hits":
+        ratio = float(acc.weight_all) / max(float(acc.weight_hits), 1e-30)
+        scale[: layers_plan.num_individual + 1] *= ratio
+        flare_scale *= ratio
+        if settings.core:
+            scale[layers_plan.core] *= path_samples[-1] / max(hits[-1], 1.0)
+    layers_array = (np.asarray(acc.layers, np.float64) * scale[:, None, None, None]).astype(np.float32)
+    if not np.all(np.isfinite(layers_array)):
+        raise FloatingPointError("the render produced non-finite pixels; please report this scene")
+
+    layers: dict[str, np.ndarray] = {}
+    layer_info = []
+    for slot, k in enumerate(layers_plan.own):
+        name = f"flare_{paths_all[k][0]:02d}_{paths_all[k][1]:02d}"
+        layers[name] = layers_array[slot]
+        layer_info.append(dict(layer=name, paths=[list(paths_all[k])]))
+    merged_paths = [list(paths_all[k]) for k in range(num_flares) if layers_plan.layer_of_path[k] == layers_plan.merged and culling.enabled[k]]
+    layers["flares_merged"] = layers_array[layers_plan.merged]
+    layer_info.append(dict(layer="flares_merged", paths=merged_paths))
+    if settings.core:
+        layers["core"] = layers_array[layers_plan.core]
+        layer_info.append(dict(layer="core", paths=["primary"]))
+    if batches >= 2:
+        mean = np.asarray(acc.flare_luminance_sum, np.float64) / batches
+        second = np.asarray(acc.flare_luminance_squares, np.float64) / batches
+        variance = np.clip(second - mean**2, 0.0, None) / (batches - 1) * flare_scale**2 * batches**2
+        layers["variance"] = variance[..., None].astype(np.float32)
+        layer_info.append(dict(layer="variance", paths=[], meaning="per-pixel variance of the flare luminance estimate"))
+    flare_rgb = sum(layers_array[slot] for slot in range(layers_plan.num_individual + 1))
+    image = np.concatenate([flare_rgb, np.clip(np.max(flare_rgb, axis=-1, keepdims=True), 0.0, 1.0)], axis=-1).astype(np.float32)
+
+    path_energy = np.asarray(acc.path_energy, np.float64) * scale[layers_plan.layer_of_path][:, None] * pitch * pitch
+    flare_samples = path_samples[:num_flares].sum()
+    methods, reports = plan.path_methods, plan.polynomial_reports
+    brightest = culling.brightest_energy
+    level, camera = plan.quality, plan.scene.camera
+    statistics = RenderStatistics(
+        jaxflare_version=__version__,
+        lens=lens.name,
+        resolution=[width, height],
+        samples=int(drawn),
+        pilot_samples=int(plan.pilot_samples.sum()),
+        batches=int(batches),
+        rays_per_batch=int(plan.samples_per_batch),
+        flare_paths=num_flares,
+        paths_rendered=len(paths_all),
+        culled_paths=int((~culling.enabled).sum()),
+        culled_energy_bound=float(culling.culled_energy_bound / max(brightest, 1e-300)) if brightest > 0 else 0.0,
+        polynomial_paths=int(sum(m == "polynomial" for m in methods)),
+        exact_paths=int(sum(m == "exact" for m in methods)),
+        sampling=settings.sampling,
+        table_updates=table_updates,
+        lens_pass_rate=float(passed[:num_flares].sum() / max(1.0, flare_samples)),
+        sensor_hit_rate=float(hits[:num_flares].sum() / max(1.0, flare_samples)),
+        core_hit_rate=float(hits[-1] / max(1.0, path_samples[-1])) if settings.core else None,
+        unevaluated_fraction=dropped,
+        f_number=float(lens.f_number()),
+        pixel_pitch_mm=float(pitch),
+        field_angle_deg=float(plan.field_angle_deg),
+        lights=[plan.scene.lights[k].name or f"light[{k}]" for k in plan.light_indices],
+        layers=layer_info,
+        setup_seconds=float(plan.setup_seconds),
+        compile_seconds=float(plan.compile_seconds),
+        render_seconds=float(render_seconds),
+        total_seconds=float(time_now - plan.started),
+        settings=dict(
+            quality=settings.quality, method=settings.method, fresnel=settings.fresnel, weights=settings.weights, sampling=settings.sampling,
+            colour_space=plan.colour_space, seed=int(plan.seed), wavelength_strata=level.wavelength_strata,
+            polynomial_degrees=list(level.degrees), tolerance_px=level.tolerance_px, f_number=camera.f_number, aperture_blades=lens.aperture_blades,
+            cull_threshold=settings.cull_threshold,
+        ),
+        paths=[
+            PathStatistics(
+                path="primary" if p is None else list(p), method=methods[k], enabled=bool(culling.enabled[k]),
+                energy=float(path_energy[k] @ luminance), rgb=[float(v) for v in path_energy[k]],
+                energy_bound=float(culling.energy_bound[k] * to_radiance * pitch * pitch), samples=int(path_samples[k]),
+                hit_rate=float(hits[k] / max(1.0, path_samples[k])),
+                polynomial_degree=None if reports[k] is None else int(reports[k].degree),
+                polynomial_validation_trusted_fraction=None if reports[k] is None else float(reports[k].trusted_fraction),
+                polynomial_untrusted_sample_fraction=None if reports[k] is None else float(plan.untrusted_fraction[k]),
+                exact_fallback_capacity=None if plan.fallback_capacity[k] is None else float(plan.fallback_capacity[k]),
+            )
+            for k, p in enumerate(paths_all)
+        ],
+    )
+    return RenderResult(image=image, layers=layers, statistics=statistics, scene=plan.scene)
