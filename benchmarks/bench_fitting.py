@@ -82,37 +82,35 @@ tint error and 3 standard errors against noise level; the dirt maps).
 
 from __future__ import annotations
 
-import argparse
-import csv
 import dataclasses
-import functools
-import io
-import json
 import math
-import os
 import shutil
 import statistics
 import sys
 import tempfile
 import time
-import traceback
 import warnings
 from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-REPO = HERE.parent
-for _p in (str(REPO), str(HERE)):
-    if _p not in sys.path:
-        sys.path.insert(0, _p)
+from _harness import (
+    REPO,
+    GuardedSteps,
+    Outputs,
+    add_out_option,
+    announce,
+    cpu_label,
+    fmt,
+    log,
+    make_parser,
+    output_folder,
+    pyplot,
+    run_meta,
+    shown_paths,
+    temporary_env,
+)
 
-from bench_render import _fmt
-from bench_trace import _finite_or_null, _json_default, announce, load_average
-
-from jaxflare.io._atomic import write_bytes_atomic
-
-DEFAULT_OUT = HERE / "results"
 STEM = "fitting_solvers"
 DEFAULT_CACHE = REPO / ".cache" / "jaxflare_bench_fitting"
 
@@ -246,7 +244,7 @@ def _observable_std() -> float:
 # --------------------------------------------------------------------------- the benchmark
 
 
-class FittingBench:
+class FittingBench(GuardedSteps):
     def __init__(self, cfg: dict, machine: str, log, work: Path, cache_dir: Path):
         import jaxflare as jf
 
@@ -325,8 +323,8 @@ class FittingBench:
             row.get("path_colour_error") if paths is not None else row.get("tint_error_47"))
         label = "dirt RMSE (lit)" if truth_dirt is not None and "coatings" not in kwargs.get("params", ()) else (
             "path-colour err" if paths is not None else "tint err 4,7")
-        self.log(f"  {scenario:11s} {variant:22s} {solver:20s} {label} {_fmt(headline, '7.4f')}  "
-                 f"{_fmt(row['fit_seconds'], '6.2f')} s ({len(runs)}x)  {result.steps:3d} steps  {result.status}")
+        self.log(f"  {scenario:11s} {variant:22s} {solver:20s} {label} {fmt(headline, '7.4f')}  "
+                 f"{fmt(row['fit_seconds'], '6.2f')} s ({len(runs)}x)  {result.steps:3d} steps  {result.status}")
         return row, result
 
     def solvers(self):
@@ -471,11 +469,9 @@ class FittingBench:
         scene = with_camera(self.scene, resolution=tuple(cfg["poly_resolution"]))
         self.log(f"\n-- 3. polynomial model vs an exactly traced plate: paths {paths}, {cfg['poly_resolution'][0]}x{cfg['poly_resolution'][1]}, "
                  f"{cfg['poly_samples']} samples, block {BLOCK}; JAXFLARE_CACHE_DIR={self.cache_dir}")
-        previous = os.environ.get("JAXFLARE_CACHE_DIR")
-        os.environ["JAXFLARE_CACHE_DIR"] = str(self.cache_dir)
         self.cache_dir.mkdir(parents=True, exist_ok=True)
         cached_before = len(list(self.cache_dir.glob("*.npz")))
-        try:
+        with temporary_env("JAXFLARE_CACHE_DIR", str(self.cache_dir)):
             rgb, plate_seconds = self.timed_build(
                 "exact plate (polynomial scenario)",
                 lambda: self.render_plate(with_tints(scene, TRUE_TINTS), cfg["poly_samples"], cfg["plate_seed"], method="exact", paths=paths),
@@ -488,11 +484,6 @@ class FittingBench:
             exact, exact_seconds = self.timed_build(
                 "exact path images (reference)", lambda: path_images(scene, samples=cfg["poly_samples"], seed=cfg["model_seed"], method="exact", paths=paths),
                 samples=cfg["poly_samples"])
-        finally:
-            if previous is None:
-                os.environ.pop("JAXFLARE_CACHE_DIR", None)
-            else:
-                os.environ["JAXFLARE_CACHE_DIR"] = previous
         full_poly, full_exact = np.asarray(poly.full_images, np.float64), np.asarray(exact.full_images, np.float64)
         self.checks["polynomial_vs_exact_images"] = {
             "relative_l2_difference": float(np.linalg.norm(full_poly - full_exact) / np.linalg.norm(full_exact)),
@@ -553,14 +544,6 @@ class FittingBench:
         else:
             self.skipped.append("scenario 8, joint coatings + dirt fit (run with --joint)")
 
-    def step(self, name: str, fn) -> None:
-        try:
-            fn()
-        except Exception as error:
-            self.skipped.append(f"{name} failed: {type(error).__name__}: {error}")
-            self.log(f"\nnote: {self.skipped[-1]}")
-            traceback.print_exc()
-
     def run(self) -> None:
         cfg = self.cfg
         self.step("shared objects", self.shared)
@@ -584,15 +567,6 @@ class FittingBench:
 # --------------------------------------------------------------------------- outputs
 
 
-def _csv_bytes(rows: list[dict]) -> bytes:
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=CSV_FIELDS, lineterminator="\n", extrasaction="ignore")
-    writer.writeheader()
-    for r in rows:
-        writer.writerow({k: ((f"{r[k]:.6g}" if math.isfinite(r[k]) else "") if isinstance(r.get(k), float) else r.get(k)) for k in CSV_FIELDS})
-    return buffer.getvalue().encode()
-
-
 SOLVER_COLOURS = {"levenberg-marquardt": "C0", "gauss-newton": "C3", "bfgs": "C2"}
 SCENARIO_MARKERS = {"crn": "o", "seed": "s", "polynomial": "P", "polynomial-exact": "X", "noise": "^", "background": "D", "far-start": "v",
                     "dirt": "*", "joint": "h"}
@@ -606,11 +580,8 @@ def headline(row: dict) -> tuple[float, str]:
     return row.get("tint_error_47", float("nan")), "tint error 4, 7"
 
 
-def _chart_png(bench: FittingBench, meta: dict) -> bytes:
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
+def _chart(bench: FittingBench, meta: dict):
+    plt = pyplot()
     import matplotlib.ticker
 
     maps = [k for k in ("truth", "sensitivity", *SOLVER_COLOURS) if k in bench.dirt_maps]
@@ -678,7 +649,7 @@ def _chart_png(bench: FittingBench, meta: dict) -> bytes:
         ax.imshow(bench.dirt_maps[name], vmin=0, vmax=1, cmap="gray" if name != "sensitivity" else "magma")
         if name in SOLVER_COLOURS:
             row = next((r for r in bench.rows if r["scenario"] == "dirt" and r["solver"] == name), None)
-            title = (f"dirt fit: {name}\nRMSE lit {_fmt(row['dirt_rmse_lit'], '.3f')}, all {_fmt(row['dirt_rmse_all'], '.3f')}; "
+            title = (f"dirt fit: {name}\nRMSE lit {fmt(row['dirt_rmse_lit'], '.3f')}, all {fmt(row['dirt_rmse_all'], '.3f')}; "
                      f"{row['steps']} steps" if row else name)
         else:
             title = titles[name] + (f"\n(lit: > {LIT}; black: exactly 0)" if name == "sensitivity" else "\n(1 clean, blotch 0.3)")
@@ -686,37 +657,19 @@ def _chart_png(bench: FittingBench, meta: dict) -> bytes:
         ax.set_xticks([])
         ax.set_yticks([])
     m = meta["machine"]
-    fig.suptitle(f"jaxflare fitting solvers: Biotar f/4 64x48, synthetic plates ({meta['mode']}); {m.get('cpu_model', m.get('processor'))}, "
-                 f"{m.get('cpu_count')} CPUs, load {m.get('load_average_start')}-{m.get('load_average_end')}", fontsize=9)
+    fig.suptitle(f"jaxflare fitting solvers: Biotar f/4 64x48, synthetic plates ({meta['mode']}); {cpu_label(m)}, "
+                 f"load {m.get('load_average_start')}-{m.get('load_average_end')}", fontsize=9)
     fig.tight_layout()
-    buffer = io.BytesIO()
-    try:
-        fig.savefig(buffer, format="png", dpi=100)
-    finally:
-        plt.close(fig)
-    return buffer.getvalue()
+    return fig
 
 
 def write_outputs(bench: FittingBench, meta: dict, out_dir: Path, log) -> list[Path]:
-    written = []
-    path = out_dir / f"{STEM}.csv"
-    write_bytes_atomic(path, _csv_bytes(bench.rows))
-    written.append(path)
-    path = out_dir / f"{STEM}.json"
-    payload = _finite_or_null(json.loads(json.dumps(
-        dict(meta, rows=bench.rows, builds=bench.builds, checks=bench.checks, fits=bench.fits,
-             dirt_maps={k: v for k, v in bench.dirt_maps.items()}),
-        default=_json_default)))
-    write_bytes_atomic(path, (json.dumps(payload, indent=1, allow_nan=False) + "\n").encode())
-    written.append(path)
-    path = out_dir / f"{STEM}.png"
-    try:
-        write_bytes_atomic(path, _chart_png(bench, meta))
-        written.append(path)
-    except Exception as error:  # a chart failure must not lose the numbers
-        log(f"chart {path.name} not written: {type(error).__name__}: {error}")
-        traceback.print_exc()
-    return written
+    out = Outputs(out_dir, log)
+    out.csv(f"{STEM}.csv", bench.rows, CSV_FIELDS, float_format=".6g", blank_nonfinite=True)
+    out.json(f"{STEM}.json", dict(meta, rows=bench.rows, builds=bench.builds, checks=bench.checks, fits=bench.fits,
+                                  dirt_maps={k: v for k, v in bench.dirt_maps.items()}))
+    out.chart(f"{STEM}.png", _chart, bench, meta, dpi=100)
+    return out.written
 
 
 def summary_text(bench: FittingBench) -> str:
@@ -724,8 +677,8 @@ def summary_text(bench: FittingBench) -> str:
               f"{'steps':>5s}  status")]
     for r in bench.rows:
         value, _ = headline(r)
-        lines.append(f"{r['scenario']:17s} {r['variant']:20s} {r['solver']:20s} {_fmt(value, '8.4f')} {_fmt(r.get('tint_error_observable'), '8.4f')} "
-                     f"{_fmt(r.get('tint_error_observable_channels'), '8.4f')} {_fmt(r.get('within_3se'), '6.2f')} {_fmt(r['fit_seconds'], '7.2f')} "
+        lines.append(f"{r['scenario']:17s} {r['variant']:20s} {r['solver']:20s} {fmt(value, '8.4f')} {fmt(r.get('tint_error_observable'), '8.4f')} "
+                     f"{fmt(r.get('tint_error_observable_channels'), '8.4f')} {fmt(r.get('within_3se'), '6.2f')} {fmt(r['fit_seconds'], '7.2f')} "
                      f"{r['steps']:5d}  {r['status']}")
     lines.append("error: max |tint - truth| over interfaces 4 and 7; polynomial*: max |path colour - truth|; dirt: RMSE over lit cells. "
                  "obs.err / ch.err: over observable interfaces / channels (tint_std < OBSERVABLE_STD)")
@@ -743,26 +696,22 @@ def summary_text(bench: FittingBench) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="smoke test: 2^18-sample plates and models, block 8 only; writes to a temporary folder")
+    parser = make_parser(__doc__, "smoke test: 2^18-sample plates and models, block 8 only; writes to a temporary folder")
     parser.add_argument("--no-polynomial", action="store_true", help="skip scenario 3 (polynomial path systems: ~40 s to build when not cached)")
     parser.add_argument("--no-dirt", action="store_true", help="skip scenarios 7 and 8 (dirt map, sample model)")
     parser.add_argument("--joint", action="store_true", help="add scenario 8 (coatings and dirt together: the slowest fits, +4-9 min)")
     parser.add_argument("--cache-dir", type=Path, default=DEFAULT_CACHE, help=f"JAXFLARE_CACHE_DIR for the path systems (default {DEFAULT_CACHE})")
-    parser.add_argument("--out", type=Path, help="output folder (default benchmarks/results; --quick: a new temporary folder)")
+    add_out_option(parser, quick_folder=True)
     args = parser.parse_args(argv)
 
     cfg = dict(QUICK if args.quick else FULL)
     cfg["polynomial"] = cfg["polynomial"] and not args.no_polynomial
     cfg["dirt"] = cfg["dirt"] and not args.no_dirt
     cfg["joint"] = args.joint and not args.quick
-    out_dir = args.out or (Path(tempfile.mkdtemp(prefix="jaxflare_bench_fitting_quick_")) if args.quick else DEFAULT_OUT)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = output_folder(args, "fitting")
 
-    log = functools.partial(print, flush=True)
     started = time.perf_counter()
     import fitting
-    import jaxflare
 
     info, machine = announce("bench_fitting", args.quick, log)
     log(f"  output folder: {out_dir}")
@@ -774,27 +723,24 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         shutil.rmtree(work, ignore_errors=True)
     elapsed = time.perf_counter() - started
-    info["load_average_end"] = load_average()
-    meta = {
-        "benchmark": STEM, "mode": "quick" if args.quick else "full", "created_unix": time.time(), "created": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-        "config": cfg, "machine": info, "machine_string": machine, "jaxflare_version": getattr(jaxflare, "__version__", "unknown"),
-        "solvers": list(fitting.SOLVERS), "default_solver": fitting.DEFAULT_SOLVER, "observable_std": fitting.OBSERVABLE_STD,
-        "dirt_prior": fitting.DIRT_PRIOR, "true_tints": TRUE_TINTS, "block": BLOCK, "lit_sensitivity": LIT, "skipped": bench.skipped,
-        "elapsed_s": elapsed, "peak_rss_mib": peak_rss_mib(),
-        "method": (
+    meta = run_meta(
+        STEM, args.quick, cfg, info, machine,
+        solvers=list(fitting.SOLVERS), default_solver=fitting.DEFAULT_SOLVER, observable_std=fitting.OBSERVABLE_STD,
+        dirt_prior=fitting.DIRT_PRIOR, true_tints=TRUE_TINTS, block=BLOCK, lit_sensitivity=LIT, skipped=bench.skipped,
+        elapsed_s=elapsed, peak_rss_mib=peak_rss_mib(),
+        method=(
             "fit_seconds = time.perf_counter around fitting.fit with the shared model passed as fixed= (median of 2 runs when the first took "
             "under retime_below_s, else 1); model/plate build times separate. Tint errors: |fitted - true| per channel; observable: every "
             "channel's tint_std < OBSERVABLE_STD; within_3se over the observable interfaces and 4, 7. Dirt: RMSE over cells with "
             "dirt_sensitivity > 0.2 (lit) and over all cells; PSNR = 20 log10(1 / RMSE)."
         ),
-    }
+    )
     written = write_outputs(bench, meta, out_dir, log)
     log("\n" + summary_text(bench))
     for note in bench.skipped:
         log(f"skipped: {note}")
-    shown = [str(p.relative_to(REPO)) if p.is_relative_to(REPO) else str(p) for p in written]
     log(f"\n{elapsed:.1f} s (load average {info['load_average_start']} at the start, {info['load_average_end']} at the end; peak memory "
-        f"{meta['peak_rss_mib']:.0f} MiB); wrote {', '.join(shown)}")
+        f"{meta['peak_rss_mib']:.0f} MiB); wrote {shown_paths(written)}")
     return 0 if bench.rows and not any("failed" in s for s in bench.skipped) else 1
 
 

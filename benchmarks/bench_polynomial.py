@@ -6,9 +6,10 @@ What is measured, per lens (Zeiss Biotar, Nikon 28-70 zoom at its wide position,
 telephoto; add ``--lenses ... minolta_fisheye`` for the wide-angle stress case, about 5 more
 minutes; ``--quick``: Biotar only, degrees 1, 3, 5, 2^12 error rays, 2^13-ray batches, 3 timed
 calls, no zoom build) on the primary path and the 3 strongest ghost paths (``rank_ghost_paths``:
-on-axis Fresnel factor), for each construction (``"fit"``, ``"taylor"``) and degree (1 to 7;
-``"fit"`` also degree 9 on the Biotar's primary path, to see where the primary path gets under
-half a pixel; ``--degrees`` replaces all of these):
+on-axis Fresnel factor), for each construction (``"fit"``, the label the results keep for
+``construction="least-squares"``, and ``"taylor"``) and degree (1 to 7; ``"fit"`` also degree 9
+on the Biotar's primary path, to see where the primary path gets under half a pixel; ``--degrees``
+replaces all of these):
 
 - **Build**: ``jaxflare.path_system(lens, path, degree=, construction=, cache=False)`` with the
   default validation; its wall time and ``system.report`` are recorded.
@@ -49,11 +50,6 @@ Outputs (atomic writes) under ``benchmarks/results/``: ``polynomial_accuracy.{cs
 
 from __future__ import annotations
 
-import argparse
-import csv
-import functools
-import io
-import json
 import math
 import random
 import statistics
@@ -65,17 +61,21 @@ from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-REPO = HERE.parent
-for _p in (str(REPO), str(HERE)):
-    if _p not in sys.path:
-        sys.path.insert(0, _p)
+from _harness import (
+    Outputs,
+    add_out_option,
+    add_stem_option,
+    announce,
+    blocked,
+    cpu_label,
+    log,
+    make_parser,
+    pyplot,
+    run_meta,
+    shown_paths,
+    timed,
+)
 
-from bench_trace import _finite_or_null, _json_default, load_average, machine_info, machine_string, timed
-
-from jaxflare.io._atomic import write_bytes_atomic
-
-DEFAULT_OUT = HERE / "results"
 STEM = "polynomial_accuracy"
 MAP_STEM = "polynomial_field_map"
 SENSOR_WIDTH_UM = 36000.0
@@ -84,6 +84,9 @@ PX_UM = SENSOR_WIDTH_UM / PIXELS_2K
 HALF_PIXEL = 0.5
 WAVELENGTH_RANGE_NM = (400.0, 700.0)
 ZOOM = "nikon_afs_28_70_zoom"
+CONSTRUCTIONS = {"fit": "least-squares", "taylor": "taylor"}
+"""The benchmark's construction labels (in its CSV and JSON) -> ``path_system(construction=)``:
+``"fit"`` is the former name of ``"least-squares"``."""
 
 LENSES = {
     "zeiss_biotar": "Biotar 100/1.4",
@@ -153,12 +156,6 @@ def make_rays(domain, lens, count: int, seed: int):
     return origins, directions, wavelength, np.degrees(np.arcsin(sin_field))
 
 
-def blocked(fn):
-    import jax
-
-    return lambda: jax.block_until_ready(fn())
-
-
 # --------------------------------------------------------------------------- one lens
 
 
@@ -170,8 +167,7 @@ class LensBench:
         import jax.numpy as jnp
 
         import jaxflare
-        from jaxflare import make_domain
-        from jaxflare.io._plot import rank_ghost_paths
+        from jaxflare import make_domain, rank_ghost_paths
 
         self.cfg, self.log, self.name = cfg, log, name
         with warnings.catch_warnings():
@@ -247,7 +243,7 @@ class LensBench:
         import jaxflare
 
         t0 = time.perf_counter()
-        system = jaxflare.path_system(self.lens, p, degree=degree, construction=construction, cache=False)
+        system = jaxflare.path_system(self.lens, p, degree=degree, construction=CONSTRUCTIONS[construction], cache=False)
         build_s = time.perf_counter() - t0
         pos, exact_valid = self.exact64[p]
         with jax.enable_x64(True):
@@ -461,7 +457,7 @@ def zoom_build_times(cfg: dict, log) -> dict:
            "degree": cfg["zoom_degree"], "budget_s": cfg["zoom_budget_s"], "constructions": {}}
     log(f"\n== every ghost path of the zoom: {len(paths)} paths, degree {cfg['zoom_degree']}, cache=False")
     for construction in cfg["constructions"]:
-        options = {"degree": cfg["zoom_degree"], "construction": construction, "cache": False}
+        options = {"degree": cfg["zoom_degree"], "construction": CONSTRUCTIONS[construction], "cache": False}
         dry = rng.sample(paths, min(cfg["zoom_dry"], len(paths)))
         dry_times = []
         for p in dry:
@@ -499,15 +495,6 @@ def zoom_build_times(cfg: dict, log) -> dict:
 # --------------------------------------------------------------------------- outputs
 
 
-def _csv_bytes(rows: list[dict], fields: list[str]) -> bytes:
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=fields, lineterminator="\n")
-    writer.writeheader()
-    for r in rows:
-        writer.writerow({k: (f"{r[k]:.6g}" if isinstance(r.get(k), float) else r.get(k)) for k in fields})
-    return buffer.getvalue().encode()
-
-
 STYLE = {
     ("fit", "primary"): {"color": "C0", "marker": "o", "ls": "-"},
     ("fit", "ghosts"): {"color": "C0", "marker": "s", "ls": "--", "mfc": "none"},
@@ -516,11 +503,8 @@ STYLE = {
 }
 
 
-def _accuracy_png(rows: list[dict], meta: dict) -> bytes:
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
+def _accuracy_chart(rows: list[dict], meta: dict):
+    plt = pyplot()
     import matplotlib.ticker
 
     lenses = [info["lens"] for info in meta["lenses"]]
@@ -569,28 +553,14 @@ def _accuracy_png(rows: list[dict], meta: dict) -> bytes:
     m = meta["machine"]
     fig.suptitle("Polynomial path systems: p99 error vs throughput (numbers: degree); "
                  f"{meta['config']['error_rays']} fresh rays/path, batch {meta['config']['timing_rays']}\n"
-                 f"{m.get('cpu_model', m.get('processor'))}, {m.get('cpu_count')} CPUs, jax {m.get('jax')}", fontsize=9)
+                 f"{cpu_label(m)}, jax {m.get('jax')}", fontsize=9)
     fig.legend(list(handles.values()), list(handles.keys()), loc="lower center", ncol=3 if width > 9 else 2, fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0.16 if width <= 9 else 0.12, 1, 1))
-    return _png(fig)
+    return fig
 
 
-def _png(fig) -> bytes:
-    import matplotlib.pyplot as plt
-
-    buffer = io.BytesIO()
-    try:
-        fig.savefig(buffer, format="png", dpi=110)
-    finally:
-        plt.close(fig)
-    return buffer.getvalue()
-
-
-def _field_map_png(map_rows: list[dict], meta: dict) -> bytes:
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
+def _field_map_chart(map_rows: list[dict], meta: dict):
+    plt = pyplot()
 
     lenses = [info["lens"] for info in meta["lenses"]]
     labels = {info["lens"]: info["label"] for info in meta["lenses"]}
@@ -622,44 +592,33 @@ def _field_map_png(map_rows: list[dict], meta: dict) -> bytes:
                  "field angle\n(dotted: 0.5 px at 2K; coverage of exact-valid rays is in the CSV)", fontsize=10)
     fig.legend(list(handles.values()), list(handles.keys()), loc="lower center", ncol=4, fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0.08, 1, 1))
-    return _png(fig)
+    return fig
 
 
 def write_outputs(rows, map_rows, meta, out_dir: Path, stem: str, map_stem: str, log) -> list[Path]:
-    written = []
-    for path, data in ((out_dir / f"{stem}.csv", _csv_bytes(rows, CSV_FIELDS)),
-                       (out_dir / f"{map_stem}.csv", _csv_bytes(map_rows, MAP_FIELDS))):
-        write_bytes_atomic(path, data)
-        written.append(path)
-    path = out_dir / f"{stem}.json"
-    payload = _finite_or_null(dict(meta, rows=rows, field_map=map_rows))
-    write_bytes_atomic(path, (json.dumps(payload, indent=1, default=_json_default, allow_nan=False) + "\n").encode())
-    written.append(path)
-    for path, draw, data in ((out_dir / f"{stem}.png", _accuracy_png, rows), (out_dir / f"{map_stem}.png", _field_map_png, map_rows)):
-        try:
-            write_bytes_atomic(path, draw(data, meta))
-            written.append(path)
-        except Exception as error:  # a chart failure must not lose the numbers
-            log(f"chart {path.name} not written: {type(error).__name__}: {error}")
-            traceback.print_exc()
-    return written
+    out = Outputs(out_dir, log)
+    out.csv(f"{stem}.csv", rows, CSV_FIELDS, float_format=".6g")
+    out.csv(f"{map_stem}.csv", map_rows, MAP_FIELDS, float_format=".6g")
+    out.json(f"{stem}.json", dict(meta, rows=rows, field_map=map_rows))
+    out.chart(f"{stem}.png", _accuracy_chart, rows, meta)
+    out.chart(f"{map_stem}.png", _field_map_chart, map_rows, meta)
+    return out.written
 
 
 # --------------------------------------------------------------------------- main
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="smoke test: Biotar only, degrees 1 3 5, fewer rays, no zoom build")
+    parser = make_parser(__doc__, "smoke test: Biotar only, degrees 1 3 5, fewer rays, no zoom build")
     parser.add_argument("--lenses", nargs="+", help=f"lens file stems (default: {' '.join(FULL['lenses'])})")
     parser.add_argument("--degrees", nargs="+", type=int, help="degrees for both constructions (default 1..7; replaces the extra fit degree 9)")
-    parser.add_argument("--constructions", nargs="+", choices=["fit", "taylor"])
+    parser.add_argument("--constructions", nargs="+", choices=list(CONSTRUCTIONS))
     parser.add_argument("--repeats", type=int, help="timed calls per measurement (median)")
     parser.add_argument("--zoom-sample", type=int, help="paths timed when building every zoom path is too long")
     parser.add_argument("--zoom-budget", type=float, help="seconds: above this dry estimate the zoom build is sampled")
     parser.add_argument("--no-zoom-build", action="store_true", help="skip timing the build of every zoom ghost path")
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output folder (default benchmarks/results)")
-    parser.add_argument("--stem", help="output file stem (default polynomial_accuracy[_quick]; the field map adds _field_map)")
+    add_out_option(parser, quick_folder=False)
+    add_stem_option(parser, "output file stem (default polynomial_accuracy[_quick]; the field map adds _field_map)")
     args = parser.parse_args(argv)
 
     cfg = dict(FULL if not args.quick else QUICK)
@@ -673,19 +632,12 @@ def main(argv: list[str] | None = None) -> int:
     stem = args.stem or STEM + suffix
     map_stem = f"{args.stem}_field_map" if args.stem else MAP_STEM + suffix
 
-    log = functools.partial(print, flush=True)
     started = time.perf_counter()
     import jax
 
     import jaxflare
 
-    info = machine_info()
-    machine = machine_string(info)
-    info["load_average_start"] = load_average()
-    log(f"bench_polynomial ({'quick' if args.quick else 'full'}): {machine}")
-    cpus = info.get("usable_cpus") or info["cpu_count"] or 1
-    if info["load_average_start"] is not None and info["load_average_start"] > 0.25 * cpus:
-        log(f"  WARNING: 1-minute load average {info['load_average_start']:.2f} on {cpus} CPUs: timings will be pessimistic and noisy")
+    info, machine = announce("bench_polynomial", args.quick, log)
     log(f"  lenses {cfg['lenses']}, degrees {cfg['degrees']} (+fit {cfg['extra_fit_degrees']}), {cfg['error_rays']} error rays "
         f"and {cfg['timing_rays']}-ray batches per path, {cfg['repeats']} timed calls (median)")
 
@@ -717,22 +669,19 @@ def main(argv: list[str] | None = None) -> int:
             traceback.print_exc()
     summary = summarise(rows, cfg)
     elapsed = time.perf_counter() - started
-    info["load_average_end"] = load_average()
-    meta = {
-        "benchmark": "polynomial_accuracy", "mode": "quick" if args.quick else "full", "created_unix": time.time(),
-        "created": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "config": cfg, "machine": info, "machine_string": machine,
-        "jaxflare_version": getattr(jaxflare, "__version__", "unknown"), "jax_x64_default": bool(jax.config.jax_enable_x64),
-        "pixel_um": PX_UM, "half_pixel_um": HALF_PIXEL * PX_UM, "wavelength_range_nm": WAVELENGTH_RANGE_NM,
-        "summary": summary, "zoom_build": zoom if zoom else "skipped", "lenses": lens_infos, "skipped": skipped,
-        "elapsed_s": elapsed,
-        "method": (
+    meta = run_meta(
+        "polynomial_accuracy", args.quick, cfg, info, machine, jax_x64_default=bool(jax.config.jax_enable_x64),
+        pixel_um=PX_UM, half_pixel_um=HALF_PIXEL * PX_UM, wavelength_range_nm=WAVELENGTH_RANGE_NM,
+        summary=summary, zoom_build=zoom if zoom else "skipped", lenses=lens_infos, skipped=skipped,
+        elapsed_s=elapsed,
+        method=(
             "errors: float64 exact trace vs float64 evaluation of system.polynomial on fresh in-domain rays; raw = trust "
             "table all True and estimate limit inf, over rays valid in both; trusted = the normal system's trusted and valid "
             "rays; px = um / (36000/2048). Throughput: float32, median of `repeats` block_until_ready calls after a "
             "warm-up, same rays for system.polynomial (no exact fallback) and jaxflare.trace; pooled kinds = total rays / "
             "total time; speed-up = exact time / polynomial time on the same paths."
         ),
-    }
+    )
     written = write_outputs(rows, map_rows, meta, args.out, stem, map_stem, log)
     labels = {i["lens"]: i["label"] for i in lens_infos}
     log("\nsmallest degree with p99 error over valid rays < 0.5 px at 2K (17.6 um/px), and speed-up over the exact tracer:")
@@ -742,8 +691,7 @@ def main(argv: list[str] | None = None) -> int:
             log(f"zoom ({zoom['num_ghost_paths']} ghost paths, degree {zoom['degree']}) {c}: {e['all_paths_s']:.0f} s "
                 f"({e['all_paths_s'] / 60:.1f} min){' extrapolated from ' + str(e['paths_built']) + ' random paths' if e['extrapolated'] else ''}")
     log("".join(f"skipped: {note}\n" for note in skipped), end="")
-    shown = [str(p.relative_to(REPO)) if p.is_relative_to(REPO) else str(p) for p in written]
-    log(f"\n{elapsed:.1f} s; wrote {', '.join(shown)}")
+    log(f"\n{elapsed:.1f} s; wrote {shown_paths(written)}")
     return 1 if not rows else 0
 
 

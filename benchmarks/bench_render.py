@@ -53,36 +53,39 @@ Outputs (atomic writes) under ``benchmarks/results/``: ``render_times.{csv,json}
 
 from __future__ import annotations
 
-import argparse
-import csv
 import dataclasses
-import functools
-import io
-import json
 import math
-import os
 import shutil
 import statistics
 import sys
 import tempfile
 import time
-import traceback
-import warnings
 from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-REPO = HERE.parent
-for _p in (str(REPO), str(HERE)):
-    if _p not in sys.path:
-        sys.path.insert(0, _p)
+from _harness import (
+    GuardedSteps,
+    Outputs,
+    add_out_option,
+    announce,
+    cpu_label,
+    fmt,
+    log,
+    make_parser,
+    median,
+    output_folder,
+    pyplot,
+    relative,
+    render_once,
+    run_meta,
+    seed_noise,
+    shown_paths,
+    sq_norm,
+    temporary_env,
+    with_resolution,
+)
 
-from bench_trace import _finite_or_null, _json_default, announce, load_average
-
-from jaxflare.io._atomic import write_bytes_atomic
-
-DEFAULT_OUT = HERE / "results"
 STEM = "render_times"
 CHART = "render_convergence.png"
 PREVIEW_PNG = "render_demo_preview.png"
@@ -103,62 +106,9 @@ CSV_FIELDS = [
     "render_seconds", "compile_seconds", "setup_seconds", "sensor_hit_rate", "relative_rmse", "noise_estimate",
     "paper_budget_seconds", "budget_ratio", "polynomial_paths", "exact_paths", "step_traces", "machine",
 ]
-STAT_KEYS = ("render_seconds", "compile_seconds", "setup_seconds", "total_seconds", "samples", "sensor_hit_rate",
-             "exact_paths", "polynomial_paths", "paths_rendered", "batches", "unevaluated_fraction")
 
 
-# --------------------------------------------------------------------------- renders and noise
-
-
-def with_resolution(scene, resolution):
-    return dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, resolution=tuple(resolution)))
-
-
-def render_once(scene, log, label: str, **kwargs):
-    """One timed ``jaxflare.render``: (record, flare RGB float32 (H, W, 3), result)."""
-    import jaxflare
-    from jaxflare import _render_step as _render
-
-    traces = _render.STEP_TRACES[0]
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        t0 = time.perf_counter()
-        result = jaxflare.render(scene, **kwargs)
-        wall = time.perf_counter() - t0
-    stats = result.statistics
-    record = {"label": label, "wall_seconds": wall, **{k: stats.get(k) for k in STAT_KEYS},
-              "step_traces": _render.STEP_TRACES[0] - traces, "seed": kwargs.get("seed", 0),
-              "resolution": "x".join(map(str, stats["resolution"])), "warnings": [str(w.message) for w in caught]}
-    flare = np.array(result.image[..., :3], np.float32)
-    log(f"  {label:34s} {record['samples']:>10d} samples  wall {wall:8.2f} s  (render {record['render_seconds']:7.2f}, "
-        f"compile/first batch {record['compile_seconds']:6.2f}, set-up {record['setup_seconds']:6.2f})  hit rate "
-        f"{record['sensor_hit_rate']:.4f}" + (f"  traced step x{record['step_traces']}" if record["step_traces"] else ""))
-    for message in record["warnings"]:
-        log(f"    warning: {message}")
-    return record, flare, result
-
-
-def sq_norm(x) -> float:
-    return float(np.sum(np.square(np.asarray(x, np.float64))))
-
-
-def relative(sigma2: float, mu2: float) -> float:
-    return math.sqrt(sigma2 / mu2) if mu2 > 0 and sigma2 >= 0 else float("nan")
-
-
-def seed_noise(images: list[np.ndarray]) -> dict:
-    """Per-render noise variance (whole-image squared norm), noise-free squared norm and relative
-    RMSE from k >= 2 independent renders of the same configuration."""
-    k = len(images)
-    mean = np.mean([np.asarray(a, np.float64) for a in images], axis=0)
-    sigma2 = sum(sq_norm(np.asarray(a, np.float64) - mean) for a in images) / (k - 1)
-    mu2 = sq_norm(mean) - sigma2 / k
-    return {"renders": k, "sigma2": sigma2, "mu2": mu2, "relative_rmse": relative(sigma2, mu2)}
-
-
-def median(records: list[dict], key: str) -> float:
-    values = [r[key] for r in records if r.get(key) is not None]
-    return statistics.median(values) if values else float("nan")
+# --------------------------------------------------------------------------- rows
 
 
 def row_from(case: str, records: list[dict], *, quality: str, method: str, requested, relative_rmse=float("nan"),
@@ -179,7 +129,7 @@ def row_from(case: str, records: list[dict], *, quality: str, method: str, reque
 # --------------------------------------------------------------------------- the benchmark
 
 
-class RenderBench:
+class RenderBench(GuardedSteps):
     def __init__(self, cfg: dict, out_dir: Path, machine: str, log):
         import jaxflare
 
@@ -380,50 +330,42 @@ class RenderBench:
             ghosts = [p for p in getattr(self, "preview_paths", []) if p["path"] != "primary"]
             paths = [tuple(p["path"]) for p in sorted(ghosts, key=lambda p: -p["energy"])[: cfg["auto_paths"]]] or None
         cache = tempfile.mkdtemp(prefix="jaxflare_bench_render_cache_")
-        previous = os.environ.get("JAXFLARE_CACHE_DIR")
-        os.environ["JAXFLARE_CACHE_DIR"] = cache
         self.log(f"\n-- method auto, preview {self.res(self.scene_preview)}, seed 0, paths "
                  f"{'all' if paths is None else paths}; JAXFLARE_CACHE_DIR={cache} (fresh, then warm)")
         try:
-            out = {}
-            for state in ("cold", "warm"):
-                record, flare, _ = self.render(self.scene_preview, f"auto ({state} path cache)", quality="preview",
-                                               samples=self.preview_n, seed=0, method="auto", paths=paths)
-                difference = float("nan")
-                if paths is None and self.preview_images and cfg["seeds"][0] == 0:
-                    exact = np.asarray(self.preview_images[0], np.float64)
-                    difference = math.sqrt(sq_norm(np.asarray(flare, np.float64) - exact) / sq_norm(exact))
-                row = self.row(f"auto_{state}", [record], quality="preview", method="auto", requested=self.preview_n,
-                               noise_estimate="" if paths is None else f"{len(paths)} ghost paths only",
-                               budget=PAPER_BUDGET_S["preview"] if paths is None else None)
-                out[state] = {"setup_seconds": record["setup_seconds"], "compile_seconds": record["compile_seconds"],
-                              "render_seconds": record["render_seconds"], "wall_seconds": record["wall_seconds"],
-                              "polynomial_paths": record["polynomial_paths"], "exact_paths": record["exact_paths"],
-                              "step_traces": record["step_traces"], "relative_difference_from_exact_seed0": difference}
-                self.log(f"  {state}: set-up (path systems) {record['setup_seconds']:.1f} s, {record['polynomial_paths']} paths "
-                         f"polynomial / {record['exact_paths']} exact"
-                         + (f", relative difference from the exact seed-0 preview {difference:.4f}" if math.isfinite(difference) else ""))
-                del row
-            out["paths"] = "all" if paths is None else [list(p) for p in paths]
-            self.checks["auto"] = out
+            with temporary_env("JAXFLARE_CACHE_DIR", cache):
+                self.auto_renders(paths)
         finally:
-            if previous is None:
-                os.environ.pop("JAXFLARE_CACHE_DIR", None)
-            else:
-                os.environ["JAXFLARE_CACHE_DIR"] = previous
             shutil.rmtree(cache, ignore_errors=True)
+
+    def auto_renders(self, paths) -> None:
+        """The cold and warm ``method="auto"`` renders (``JAXFLARE_CACHE_DIR`` set by :meth:`auto`)."""
+        cfg = self.cfg
+        out = {}
+        for state in ("cold", "warm"):
+            record, flare, _ = self.render(self.scene_preview, f"auto ({state} path cache)", quality="preview",
+                                           samples=self.preview_n, seed=0, method="auto", paths=paths)
+            difference = float("nan")
+            if paths is None and self.preview_images and cfg["seeds"][0] == 0:
+                exact = np.asarray(self.preview_images[0], np.float64)
+                difference = math.sqrt(sq_norm(np.asarray(flare, np.float64) - exact) / sq_norm(exact))
+            row = self.row(f"auto_{state}", [record], quality="preview", method="auto", requested=self.preview_n,
+                           noise_estimate="" if paths is None else f"{len(paths)} ghost paths only",
+                           budget=PAPER_BUDGET_S["preview"] if paths is None else None)
+            out[state] = {"setup_seconds": record["setup_seconds"], "compile_seconds": record["compile_seconds"],
+                          "render_seconds": record["render_seconds"], "wall_seconds": record["wall_seconds"],
+                          "polynomial_paths": record["polynomial_paths"], "exact_paths": record["exact_paths"],
+                          "step_traces": record["step_traces"], "relative_difference_from_exact_seed0": difference}
+            self.log(f"  {state}: set-up (path systems) {record['setup_seconds']:.1f} s, {record['polynomial_paths']} paths "
+                     f"polynomial / {record['exact_paths']} exact"
+                     + (f", relative difference from the exact seed-0 preview {difference:.4f}" if math.isfinite(difference) else ""))
+            del row
+        out["paths"] = "all" if paths is None else [list(p) for p in paths]
+        self.checks["auto"] = out
 
     @staticmethod
     def res(scene) -> str:
         return "x".join(map(str, scene.camera.resolution))
-
-    def step(self, name: str, fn) -> None:
-        try:
-            fn()
-        except Exception as error:
-            self.skipped.append(f"{name} failed: {type(error).__name__}: {error}")
-            self.log(f"\nnote: {self.skipped[-1]}")
-            traceback.print_exc()
 
     def run(self) -> None:
         cfg = self.cfg
@@ -446,22 +388,8 @@ class RenderBench:
 # --------------------------------------------------------------------------- outputs
 
 
-def _csv_bytes(rows: list[dict]) -> bytes:
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=CSV_FIELDS, lineterminator="\n")
-    writer.writeheader()
-    for r in rows:
-        writer.writerow({k: ((f"{r[k]:.6g}" if math.isfinite(r[k]) else "") if isinstance(r.get(k), float) else r.get(k))
-                         for k in CSV_FIELDS})
-    return buffer.getvalue().encode()
-
-
-def _chart_png(bench: RenderBench, meta: dict) -> bytes:
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-
+def _chart(bench: RenderBench, meta: dict):
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(8.0, 5.6))
     points = [c for c in bench.convergence if math.isfinite(c["relative_rmse"]) and c["median_seconds"] > 0]
     res = "x".join(map(str, bench.cfg["preview_resolution"]))
@@ -498,50 +426,27 @@ def _chart_png(bench: RenderBench, meta: dict) -> bytes:
     ax.legend(fontsize=8, loc="lower left")
     m = meta["machine"]
     ax.set_title(f"jaxflare demo scene (Biotar f/2.8): noise against render time ({meta['mode']})\n"
-                 f"{m.get('cpu_model', m.get('processor'))}, {m.get('cpu_count')} CPUs, jax {m.get('jax')} ({m.get('jax_backend')})",
+                 f"{cpu_label(m)}, jax {m.get('jax')} ({m.get('jax_backend')})",
                  fontsize=9)
     fig.tight_layout()
-    buffer = io.BytesIO()
-    try:
-        fig.savefig(buffer, format="png", dpi=110)
-    finally:
-        plt.close(fig)
-    return buffer.getvalue()
+    return fig
 
 
 def write_outputs(bench: RenderBench, meta: dict, out_dir: Path, log) -> list[Path]:
-    written = []
-    path = out_dir / f"{STEM}.csv"
-    write_bytes_atomic(path, _csv_bytes(bench.rows))
-    written.append(path)
-    path = out_dir / f"{STEM}.json"
-    payload = _finite_or_null(dict(meta, rows=bench.rows, renders=bench.records, checks=bench.checks, convergence=bench.convergence))
-    write_bytes_atomic(path, (json.dumps(payload, indent=1, default=_json_default, allow_nan=False) + "\n").encode())
-    written.append(path)
-    path = out_dir / CHART
-    try:
-        write_bytes_atomic(path, _chart_png(bench, meta))
-        written.append(path)
-    except Exception as error:  # a chart failure must not lose the numbers
-        log(f"chart {path.name} not written: {type(error).__name__}: {error}")
-        traceback.print_exc()
-    return written + bench.written
-
-
-def _fmt(value, spec: str, missing: str = "-") -> str:
-    if isinstance(value, (int, float)) and math.isfinite(value):
-        return format(value, spec)
-    width = "".join(ch for ch in spec.split(".")[0] if ch.isdigit())
-    return missing.rjust(int(width) if width else 0)
+    out = Outputs(out_dir, log)
+    out.csv(f"{STEM}.csv", bench.rows, CSV_FIELDS, float_format=".6g", blank_nonfinite=True)
+    out.json(f"{STEM}.json", dict(meta, rows=bench.rows, renders=bench.records, checks=bench.checks, convergence=bench.convergence))
+    out.chart(CHART, _chart, bench, meta)
+    return out.written + bench.written
 
 
 def summary_text(bench: RenderBench) -> str:
     lines = [(f"{'case':22s} {'resolution':>10s} {'method':>6s} {'samples':>10s} {'median s':>9s} {'render s':>9s} "
               f"{'budget s':>8s} {'x budget':>8s} {'rel. RMSE':>9s}  noise estimate")]
     for r in bench.rows:
-        lines.append(f"{r['case']:22s} {r['resolution']:>10s} {r['method']:>6s} {r['samples']:>10d} {_fmt(r['median_seconds'], '9.2f')} "
-                     f"{_fmt(r['render_seconds'], '9.2f')} {_fmt(r['paper_budget_seconds'], '8.0f')} {_fmt(r['budget_ratio'], '8.2f')} "
-                     f"{_fmt(r['relative_rmse'], '9.4f')}  {r['noise_estimate']}")
+        lines.append(f"{r['case']:22s} {r['resolution']:>10s} {r['method']:>6s} {r['samples']:>10d} {fmt(r['median_seconds'], '9.2f')} "
+                     f"{fmt(r['render_seconds'], '9.2f')} {fmt(r['paper_budget_seconds'], '8.0f')} {fmt(r['budget_ratio'], '8.2f')} "
+                     f"{fmt(r['relative_rmse'], '9.4f')}  {r['noise_estimate']}")
     c = bench.checks
     if "reference" in c:
         lines.append(f"check: preview noise against the reference / seed-to-seed = {c['reference']['agreement']:.3f} (expect 1)")
@@ -552,7 +457,7 @@ def summary_text(bench: RenderBench) -> str:
     if "production" in c and c["production"]["full_render"]:
         p = c["production"]
         lines.append(f"check: production noise extrapolated {p['relative_rmse_extrapolated']:.4f} vs against the full render "
-                     f"{_fmt(p['relative_rmse_cross_check'], '.4f')}")
+                     f"{fmt(p['relative_rmse_cross_check'], '.4f')}")
     if "auto" in c:
         a = c["auto"]
         lines.append(f"auto: path-system set-up {a['cold']['setup_seconds']:.1f} s cold, {a['warm']['setup_seconds']:.1f} s warm; "
@@ -566,23 +471,19 @@ def summary_text(bench: RenderBench) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true",
-                        help="smoke test: 320x180 / 480x270, 2^18 / 2^20 samples, auto on 2 paths; writes to a temporary folder")
+    parser = make_parser(__doc__, "smoke test: 320x180 / 480x270, 2^18 / 2^20 samples, auto on 2 paths; writes to a temporary folder")
     parser.add_argument("--no-production", action="store_true", help="skip the full 2K production render (noise still extrapolated)")
     parser.add_argument("--no-reference", action="store_true", help="skip the 8x-samples reference render")
     parser.add_argument("--no-auto", action="store_true", help="skip the method='auto' renders (path-system build)")
-    parser.add_argument("--out", type=Path, help="output folder (default benchmarks/results; --quick: a new temporary folder)")
+    add_out_option(parser, quick_folder=True)
     args = parser.parse_args(argv)
 
     cfg = dict(QUICK if args.quick else FULL)
     cfg["production_full"] = cfg["production_full"] and not args.no_production
     cfg["reference"] = cfg["reference"] and not args.no_reference
     cfg["auto"] = cfg["auto"] and not args.no_auto
-    out_dir = args.out or (Path(tempfile.mkdtemp(prefix="jaxflare_bench_render_quick_")) if args.quick else DEFAULT_OUT)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = output_folder(args, "render")
 
-    log = functools.partial(print, flush=True)
     started = time.perf_counter()
     import jax
 
@@ -599,26 +500,22 @@ def main(argv: list[str] | None = None) -> int:
         f"{PAPER_BUDGET_S['production']:g} s")
     bench.run()
     elapsed = time.perf_counter() - started
-    info["load_average_end"] = load_average()
-    meta = {
-        "benchmark": "render_times", "mode": "quick" if args.quick else "full", "created_unix": time.time(),
-        "created": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "config": cfg, "machine": info, "machine_string": machine,
-        "jaxflare_version": getattr(jaxflare, "__version__", "unknown"), "paper_budget_seconds": PAPER_BUDGET_S,
-        "quality_levels": {k: dataclasses.asdict(v) for k, v in jaxflare.QUALITY_LEVELS.items()},
-        "skipped": bench.skipped, "elapsed_s": elapsed,
-        "method": (
+    meta = run_meta(
+        "render_times", args.quick, cfg, info, machine, paper_budget_seconds=PAPER_BUDGET_S,
+        quality_levels={k: dataclasses.asdict(v) for k, v in jaxflare.QUALITY_LEVELS.items()},
+        skipped=bench.skipped, elapsed_s=elapsed,
+        method=(
             "wall = time.perf_counter around jaxflare.render after a warm-up render of each configuration (compile excluded); "
             "median over seeds. Noise on image[..., :3] (all flares, no core layer), whole-image squared norms: "
             "sigma^2 = sum ||A_i - mean||^2 / (k - 1), ||mu||^2 = ||mean||^2 - sigma^2 / k, relative RMSE = sqrt(sigma^2 / ||mu||^2); "
             "reference: sigma^2 = mean ||A_i - R||^2 - sigma^2 / m; production: 1/8-sample renders extrapolated by the drawn-sample ratio."
         ),
-    }
+    )
     written = write_outputs(bench, meta, out_dir, log)
     log("\n" + summary_text(bench))
     for note in bench.skipped:
         log(f"skipped: {note}")
-    shown = [str(p.relative_to(REPO)) if p.is_relative_to(REPO) else str(p) for p in written]
-    log(f"\n{elapsed:.1f} s; wrote {', '.join(shown)}")
+    log(f"\n{elapsed:.1f} s; wrote {shown_paths(written)}")
     return 0 if bench.rows and not any("failed" in s for s in bench.skipped) else 1
 
 

@@ -46,15 +46,15 @@ configuration has had a warm-up render) and compared:
   (``half_field_of_view_deg``): build seconds, validation p99 error and trusted fraction (no image);
 - **occlusion**: the scene without geometry (the renderer skips the ray casts) against the same
   scene with a mesh that blocks nothing: ``far`` (a box 100 m away: every segment misses its bounding
-  box and is answered without casting), rendered as shipped, i.e. each render loads the mesh and,
-  since the step holds the ``Occluders`` as a static field hashed by identity, re-compiles the
-  render step; and ``enclosing`` (two small triangles at opposite corners of a box around camera and
-  lamp: every segment is cast with Embree and misses), rendered with the mesh loading memoised
-  (:class:`CachedOccluderLoading`) so the step compiles once and the timing is the ray casts'.
-  Same seeds as the scene without geometry, so the images must be identical.
+  box and is answered without casting), rendered as shipped with no warm-up render of its own; and
+  ``enclosing`` (two small triangles at opposite corners of a box around camera and lamp: every
+  segment is cast with Embree and misses), after a warm-up render, so that the timing is the ray
+  casts'. Same seeds as the scene without geometry, so the images must be identical.
 
-The part-1 renders of the geometry scene use the memoised loading as well (otherwise every one of
-them would include a compile).
+The render step holds the ``Occluders`` as a static field hashed by identity; the renderer reuses
+the loaded meshes while their files are unchanged (``jaxflare.rendering.effects.cached_occluders``),
+so a scene with geometry compiles the step once, not on every render (``step_traces`` in the
+records shows it), in part 1 as in part 2.
 
 **Noise and error.** On the flare RGB ``result.image[..., :3]`` (no core), whole-image squared
 norms, as ``bench_render.py``: two renders A, B of one configuration give sigma^2 = ||A - B||^2 / 2,
@@ -70,9 +70,10 @@ is compared with independent seeds: it samples differently from ``exact`` (its p
 tables are not kept), so same seeds do not give the same samples.
 
 **Timing.** The median wall time of the renders of a configuration that did not trace the render
-step (``STEP_TRACES``): ``method="auto"`` can re-compile after the pilot when a path's exact-fallback
-capacity differs from the warm-up's; such a render is not counted when the other seed's was warm
-(all records, with ``step_traces``, are in the JSON).
+step (``step_traces``: ``equinox.debug.get_num_traces(jaxflare.rendering.render_step)`` before and
+after): ``method="auto"`` can re-compile after the pilot when a path's exact-fallback capacity
+differs from the warm-up's; such a render is not counted when the other seed's was warm (all
+records, with ``step_traces``, are in the JSON).
 
 ``--quick``: 320x180, 2^15 ... 2^17 samples, only the 3 strongest ghost paths (``paths=``), the
 Biotar only in part 2, 1 path for the field-angle builds (about 8 min on the loaded 2-core machine,
@@ -82,37 +83,42 @@ unless ``--out`` is given, never into ``benchmarks/results``.
 
 from __future__ import annotations
 
-import argparse
 import collections
-import csv
 import dataclasses
-import functools
-import io
-import json
 import math
-import os
 import shutil
 import statistics
 import sys
 import tempfile
 import time
-import traceback
 from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-REPO = HERE.parent
-for _p in (str(REPO), str(HERE)):
-    if _p not in sys.path:
-        sys.path.insert(0, _p)
+from _harness import (
+    GuardedSteps,
+    Outputs,
+    add_out_option,
+    announce,
+    cpu_label,
+    fmt,
+    load_average,
+    log,
+    make_parser,
+    median,
+    output_folder,
+    pyplot,
+    relative,
+    render_once,
+    run_meta,
+    seed_noise,
+    shown_paths,
+    sq_norm,
+    temporary_env,
+    usable_cpus,
+    with_resolution,
+)
 
-from bench_render import _fmt, median, relative, render_once, seed_noise, sq_norm, with_resolution
-from bench_trace import _finite_or_null, _json_default, announce, load_average
-
-from jaxflare.io._atomic import write_bytes_atomic
-
-DEFAULT_OUT = HERE / "results"
 CONVERGENCE_STEM = "sampling_convergence"
 CHOICES_STEM = "model_choices"
 
@@ -191,8 +197,8 @@ def light_centre(scene) -> np.ndarray:
 def blocked_fraction(scene, mesh_file: Path, rays: int = 20000, seed: int = 0) -> float:
     """Fraction of light-to-front-lens segments the mesh blocks (uniform points on the sphere light,
     uniform points on the front clear aperture)."""
-    from jaxflare.render.effects._occluders import load_occluders
-    from jaxflare.scenes._scene import camera_lens
+    from jaxflare.rendering.effects import load_occluders
+    from jaxflare.scenes import camera_lens
 
     rng = np.random.default_rng(seed)
     light = scene.lights[0]
@@ -241,34 +247,6 @@ def warm_median(records: list[dict], key: str = "wall_seconds") -> float:
     return median(warm or records, key)
 
 
-class CachedOccluderLoading:
-    """Within the block, ``jaxflare.render.effects._occluders.load_occluders`` returns the same ``Occluders`` object
-    for the same files and placement. The renderer loads the meshes on every call, and the render
-    step holds them as a static field hashed by identity, so as shipped every render of a scene
-    with geometry re-traces and re-compiles the step; with this, only the first one does, and the
-    timings show the cost of the ray casts themselves (the as-shipped cost is measured separately)."""
-
-    def __enter__(self):
-        from jaxflare import _occlusion
-
-        self.module, self.original, self.memo = _occlusion, _occlusion.load_occluders, {}
-        original, memo = self.original, self.memo
-
-        def load(paths, *, transforms=None, scale=1.0):
-            files = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
-            key = (tuple(os.fspath(f) for f in files), None if transforms is None else tuple(np.asarray(t, np.float64).tobytes() for t in transforms), scale)
-            if key not in memo:
-                memo[key] = original(paths, transforms=transforms, scale=scale)
-            return memo[key]
-
-        _occlusion.load_occluders = load
-        return self
-
-    def __exit__(self, *exc):
-        self.module.load_occluders = self.original
-        return False
-
-
 # --------------------------------------------------------------------------- comparisons
 
 
@@ -297,7 +275,7 @@ def compare_paired(full: list[np.ndarray], reduced: list[np.ndarray]) -> dict:
 # --------------------------------------------------------------------------- the benchmark
 
 
-class SamplingBench:
+class SamplingBench(GuardedSteps):
     def __init__(self, cfg: dict, out_dir: Path, machine: str, log, work: Path):
         import jaxflare
 
@@ -316,8 +294,8 @@ class SamplingBench:
         """``paths=`` of every render: None (all) in the full run, the strongest ghost paths in --quick."""
         if not self.cfg["paths"]:
             return None
-        from jaxflare.io._plot import rank_ghost_paths
-        from jaxflare.scenes._scene import camera_lens
+        from jaxflare.optics import rank_ghost_paths
+        from jaxflare.scenes import camera_lens
 
         return [p for p, _ in rank_ghost_paths(camera_lens(scene.camera))[: self.cfg["paths"]]]
 
@@ -341,14 +319,6 @@ class SamplingBench:
             images.append(flare)
             stats.append(st)
         return records, images, stats
-
-    def step(self, name: str, fn, *args) -> None:
-        try:
-            fn(*args)
-        except Exception as error:  # noqa: BLE001  (one failed part must not lose the others)
-            self.skipped.append(f"{name} failed: {type(error).__name__}: {error}")
-            self.log(f"\nnote: {self.skipped[-1]}")
-            traceback.print_exc()
 
     # ---- part 1: convergence
     def geometry_dirt_scene(self):
@@ -435,8 +405,8 @@ class SamplingBench:
         }
         self.choice_rows.append(row)
         self.log(f"  => {choice}: {full_label} {t_full:.2f} s -> {reduced_label} {t_red:.2f} s ({row['time_saved_percent']:+.1f} % saved); "
-                 f"relative RMSE raw {_fmt(row['relative_rmse_raw'], '.2e')}, bias {_fmt(row['relative_bias_estimate'], '.2e')} "
-                 f"(noise floor {_fmt(row['noise_floor'], '.2e')}){'; ' + notes if notes else ''}")
+                 f"relative RMSE raw {fmt(row['relative_rmse_raw'], '.2e')}, bias {fmt(row['relative_bias_estimate'], '.2e')} "
+                 f"(noise floor {fmt(row['noise_floor'], '.2e')}){'; ' + notes if notes else ''}")
         return row
 
     def choices(self, lens: str) -> None:
@@ -521,16 +491,19 @@ class SamplingBench:
                                                     "polynomial_untrusted_sample_fraction", "exact_fallback_capacity")} for p in auto_s[0]["paths"]]
         del auto_i
 
-        # as shipped: every render of a scene with geometry loads the mesh anew and re-compiles the step
+        # as shipped, no warm-up: the first render with the mesh compiles the step (the renderer
+        # reuses the loaded mesh afterwards, so a later one does not, unless the renderer changes)
         rec, img, _ = self.renders(scene_far, f"{lens} far mesh (as shipped)", seeds_red, samples=n, method="exact")
+        traces = sum(r["step_traces"] for r in rec)
+        compiles = "each mesh render re-compiles the step" if traces >= len(rec) else "the renderer reused the loaded mesh"
         self.choice_row(lens, "occlusion skip (far mesh)", "far mesh (as shipped)", "no geometry", rec, base_r, compare_paired(img, base_i),
-                        notes=f"blocks {blocked['far']:.2%}; each mesh render re-compiles the step (first batch "
-                        f"{median(rec, 'compile_seconds'):.1f} s, {sum(r['step_traces'] for r in rec)} traces in {len(rec)} renders); "
+                        notes=f"blocks {blocked['far']:.2%}; {compiles} (first batch "
+                        f"{median(rec, 'compile_seconds'):.1f} s, {traces} traces in {len(rec)} renders); "
                         f"render loop {median(rec, 'render_seconds'):.2f} -> {median(base_r, 'render_seconds'):.2f} s")
         del img
-        with CachedOccluderLoading():  # one compile, then the timed renders measure the ray casts
-            self.render(scene_enc, f"warm-up {lens} enclosing mesh", samples=w, method="exact")
-            rec, img, _ = self.renders(scene_enc, f"{lens} enclosing mesh", seeds_red, samples=n, method="exact")
+        # one compile (the warm-up), then the timed renders measure the ray casts
+        self.render(scene_enc, f"warm-up {lens} enclosing mesh", samples=w, method="exact")
+        rec, img, _ = self.renders(scene_enc, f"{lens} enclosing mesh", seeds_red, samples=n, method="exact")
         traces = sum(r["step_traces"] for r in rec)
         self.choice_row(lens, "occlusion skip (enclosing mesh)", "enclosing mesh (cached load)", "no geometry", rec, base_r, compare_paired(img, base_i),
                         notes=f"blocks {blocked['enclosing']:.2%}; every segment cast (Embree), mesh loaded once; render loop "
@@ -541,8 +514,8 @@ class SamplingBench:
 
     def field_angle(self, lens_name: str, scene, stats) -> None:
         import jaxflare
-        from jaxflare.io._plot import rank_ghost_paths
-        from jaxflare.scenes._scene import camera_lens, sensor_size_mm
+        from jaxflare.optics import rank_ghost_paths
+        from jaxflare.scenes import camera_lens, sensor_size_mm
 
         cfg = self.cfg
         render_lens = camera_lens(scene.camera)
@@ -591,51 +564,33 @@ class SamplingBench:
 
     def run(self) -> None:
         cache = tempfile.mkdtemp(prefix="jaxflare_bench_sampling_cache_")
-        previous = os.environ.get("JAXFLARE_CACHE_DIR")
-        os.environ["JAXFLARE_CACHE_DIR"] = cache
         self.log(f"  JAXFLARE_CACHE_DIR={cache} (fresh; removed at the end)")
         try:
-            if self.cfg["convergence"]:
-                with CachedOccluderLoading():  # the geometry scene compiles once, not on every render (see the class)
+            with temporary_env("JAXFLARE_CACHE_DIR", cache):
+                if self.cfg["convergence"]:
                     self.step("convergence", self.convergence)
-            else:
-                self.skipped.append("convergence (--no-convergence)")
-            if self.cfg["choices"]:
-                for lens in self.cfg["lenses"]:
-                    self.step(f"model choices {lens}", self.choices, lens)
-            else:
-                self.skipped.append("model choices (--no-choices)")
+                else:
+                    self.skipped.append("convergence (--no-convergence)")
+                if self.cfg["choices"]:
+                    for lens in self.cfg["lenses"]:
+                        self.step(f"model choices {lens}", self.choices, lens)
+                else:
+                    self.skipped.append("model choices (--no-choices)")
         finally:
-            if previous is None:
-                os.environ.pop("JAXFLARE_CACHE_DIR", None)
-            else:
-                os.environ["JAXFLARE_CACHE_DIR"] = previous
             shutil.rmtree(cache, ignore_errors=True)
 
 
 # --------------------------------------------------------------------------- outputs
 
 
-def _csv_bytes(rows: list[dict], fields: list[str]) -> bytes:
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=fields, lineterminator="\n", extrasaction="ignore")
-    writer.writeheader()
-    for r in rows:
-        writer.writerow({k: ((f"{r[k]:.6g}" if math.isfinite(r[k]) else "") if isinstance(r.get(k), float) else r.get(k)) for k in fields})
-    return buffer.getvalue().encode()
-
-
 def _title(meta: dict, what: str) -> str:
     m = meta["machine"]
-    return (f"{what} ({meta['mode']}; {m.get('cpu_model', m.get('processor'))}, {m.get('cpu_count')} CPUs, "
+    return (f"{what} ({meta['mode']}; {cpu_label(m)}, "
             f"jax {m.get('jax')} ({m.get('jax_backend')}), load {m.get('load_average_start')})")
 
 
-def _convergence_png(bench: SamplingBench, meta: dict) -> bytes:
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
+def _convergence_chart(bench: SamplingBench, meta: dict):
+    plt = pyplot()
 
     scenes = list(dict.fromkeys(r["scene"] for r in bench.convergence_rows))
     fig, axes = plt.subplots(1, max(1, len(scenes)), figsize=(6.2 * max(1, len(scenes)), 5.2), squeeze=False)
@@ -662,19 +617,11 @@ def _convergence_png(bench: SamplingBench, meta: dict) -> bytes:
         ax.legend(fontsize=8)
     fig.suptitle(_title(meta, "noise against render time per sampling mode"), fontsize=8)
     fig.tight_layout()
-    buffer = io.BytesIO()
-    try:
-        fig.savefig(buffer, format="png", dpi=110)
-    finally:
-        plt.close(fig)
-    return buffer.getvalue()
+    return fig
 
 
-def _choices_png(bench: SamplingBench, meta: dict) -> bytes:
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
+def _choices_chart(bench: SamplingBench, meta: dict):
+    plt = pyplot()
 
     rows = bench.choice_rows
     choices = list(dict.fromkeys(r["choice"] for r in rows))
@@ -710,44 +657,24 @@ def _choices_png(bench: SamplingBench, meta: dict) -> bytes:
     ax2.legend(fontsize=7)
     fig.suptitle(_title(meta, "model no more than the scene needs: time saved and image error per choice"), fontsize=8)
     fig.tight_layout()
-    buffer = io.BytesIO()
-    try:
-        fig.savefig(buffer, format="png", dpi=110)
-    finally:
-        plt.close(fig)
-    return buffer.getvalue()
+    return fig
 
 
 def write_outputs(bench: SamplingBench, meta: dict, out_dir: Path, log) -> list[Path]:
-    written = []
-
-    def put(name: str, data: bytes):
-        path = out_dir / name
-        write_bytes_atomic(path, data)
-        written.append(path)
-
-    def chart(name: str, fn):
-        try:
-            put(name, fn(bench, meta))
-        except Exception as error:  # noqa: BLE001  (a chart failure must not lose the numbers)
-            log(f"chart {name} not written: {type(error).__name__}: {error}")
-            traceback.print_exc()
-
-    def dump(payload) -> bytes:
-        return (json.dumps(_finite_or_null(payload), indent=1, default=_json_default, allow_nan=False) + "\n").encode()
-
+    out = Outputs(out_dir, log)
+    number_format = {"float_format": ".6g", "blank_nonfinite": True}
     if bench.convergence_rows:
-        put(f"{CONVERGENCE_STEM}.csv", _csv_bytes(bench.convergence_rows, CONVERGENCE_FIELDS))
-        put(f"{CONVERGENCE_STEM}.json", dump(dict(meta, benchmark=CONVERGENCE_STEM, rows=bench.convergence_rows,
+        out.csv(f"{CONVERGENCE_STEM}.csv", bench.convergence_rows, CONVERGENCE_FIELDS, **number_format)
+        out.json(f"{CONVERGENCE_STEM}.json", dict(meta, benchmark=CONVERGENCE_STEM, rows=bench.convergence_rows,
                                                   checks={k: v for k, v in bench.checks.items() if k != "choices"},
-                                                  renders=[r for r in bench.records if not r["case"].startswith(tuple(bench.cfg["lenses"]))])))
-        chart(f"{CONVERGENCE_STEM}.png", _convergence_png)
+                                                  renders=[r for r in bench.records if not r["case"].startswith(tuple(bench.cfg["lenses"]))]))
+        out.chart(f"{CONVERGENCE_STEM}.png", _convergence_chart, bench, meta)
     if bench.choice_rows:
-        put(f"{CHOICES_STEM}.csv", _csv_bytes(bench.choice_rows, CHOICE_FIELDS))
-        put(f"{CHOICES_STEM}.json", dump(dict(meta, benchmark=CHOICES_STEM, rows=bench.choice_rows, checks=bench.checks.get("choices", {}),
-                                              renders=bench.records)))
-        chart(f"{CHOICES_STEM}.png", _choices_png)
-    return written
+        out.csv(f"{CHOICES_STEM}.csv", bench.choice_rows, CHOICE_FIELDS, **number_format)
+        out.json(f"{CHOICES_STEM}.json", dict(meta, benchmark=CHOICES_STEM, rows=bench.choice_rows, checks=bench.checks.get("choices", {}),
+                                              renders=bench.records))
+        out.chart(f"{CHOICES_STEM}.png", _choices_chart, bench, meta)
+    return out.written
 
 
 def summary_text(bench: SamplingBench) -> str:
@@ -761,22 +688,22 @@ def summary_text(bench: SamplingBench) -> str:
             if r["step_traces"]:
                 note += f" step traced x{r['step_traces']}"
             eff = r["relative_rmse"] * math.sqrt(r["median_seconds"]) if math.isfinite(r["relative_rmse"]) else float("nan")
-            lines.append(f"{r['scene']:14s} {r['mode']:9s} {r['samples']:>9d} {_fmt(r['median_seconds'], '9.2f')} {_fmt(r['sensor_hit_rate'], '8.4f')} "
-                         f"{_fmt(r['relative_rmse'], '9.4f')} {_fmt(eff, '12.4f')}  {note}")
+            lines.append(f"{r['scene']:14s} {r['mode']:9s} {r['samples']:>9d} {fmt(r['median_seconds'], '9.2f')} {fmt(r['sensor_hit_rate'], '8.4f')} "
+                         f"{fmt(r['relative_rmse'], '9.4f')} {fmt(eff, '12.4f')}  {note}")
         c = bench.checks
         if "auto_build" in c:
             lines.append("auto path-system set-up (warm-up): " + ", ".join(f"{k} {v['setup_seconds']:.1f} s" for k, v in c["auto_build"].items()))
         if "geometry_dirt_scene" in c:
             g = c["geometry_dirt_scene"]
             lines.append(f"geometry_dirt scene: plate blocks {g['blocked_segment_fraction']:.1%} of lamp-to-lens segments; flare energy "
-                         f"{_fmt(g.get('flare_energy_drop_vs_demo'), '.1%')} below the demo's")
+                         f"{fmt(g.get('flare_energy_drop_vs_demo'), '.1%')} below the demo's")
         lines.append("")
     if bench.choice_rows:
         lines.append(f"{'lens':16s} {'choice':30s} {'full s':>8s} {'reduced s':>9s} {'saved %':>8s} {'RMSE raw':>9s} {'bias est.':>9s} {'floor':>8s}  notes")
         for r in bench.choice_rows:
-            lines.append(f"{r['lens']:16s} {r['choice']:30s} {_fmt(r['full_seconds'], '8.2f')} {_fmt(r['reduced_seconds'], '9.2f')} "
-                         f"{_fmt(r['time_saved_percent'], '8.1f')} {_fmt(r['relative_rmse_raw'], '9.2e')} {_fmt(r['relative_bias_estimate'], '9.2e')} "
-                         f"{_fmt(r['noise_floor'], '8.1e')}  {r['notes']}")
+            lines.append(f"{r['lens']:16s} {r['choice']:30s} {fmt(r['full_seconds'], '8.2f')} {fmt(r['reduced_seconds'], '9.2f')} "
+                         f"{fmt(r['time_saved_percent'], '8.1f')} {fmt(r['relative_rmse_raw'], '9.2e')} {fmt(r['relative_bias_estimate'], '9.2e')} "
+                         f"{fmt(r['noise_floor'], '8.1e')}  {r['notes']}")
     return "\n".join(lines)
 
 
@@ -784,12 +711,11 @@ def summary_text(bench: SamplingBench) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="smoke test: 320x180, 2^15-2^17 samples, the 3 strongest ghost paths, Biotar only; writes to a temporary folder")
+    parser = make_parser(__doc__, "smoke test: 320x180, 2^15-2^17 samples, the 3 strongest ghost paths, Biotar only; writes to a temporary folder")
     parser.add_argument("--no-convergence", action="store_true", help="skip part 1 (convergence charts)")
     parser.add_argument("--no-choices", action="store_true", help="skip part 2 (model-choice table)")
     parser.add_argument("--lenses", nargs="+", help="lenses of part 2 (default zeiss_biotar tronnier_heliar)")
-    parser.add_argument("--out", type=Path, help="output folder (default benchmarks/results; --quick: a new temporary folder)")
+    add_out_option(parser, quick_folder=True)
     args = parser.parse_args(argv)
 
     cfg = dict(QUICK if args.quick else FULL)
@@ -797,35 +723,31 @@ def main(argv: list[str] | None = None) -> int:
     cfg["choices"] = cfg["choices"] and not args.no_choices
     if args.lenses:
         cfg["lenses"] = list(args.lenses)
-    out_dir = args.out or (Path(tempfile.mkdtemp(prefix="jaxflare_bench_sampling_quick_")) if args.quick else DEFAULT_OUT)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = output_folder(args, "sampling")
 
-    log = functools.partial(print, flush=True)
     started = time.perf_counter()
     import jaxflare
 
     info, machine = announce("bench_sampling", args.quick, log)
-    cpus = info.get("usable_cpus") or info["cpu_count"] or 1
+    cpus = usable_cpus(info)
     log(f"  output folder: {out_dir}")
     work = Path(tempfile.mkdtemp(prefix="jaxflare_bench_sampling_inputs_"))
     try:
         bench = SamplingBench(cfg, out_dir, machine, log, work)
         bench.run()
         elapsed = time.perf_counter() - started
-        info["load_average_end"] = load_average()
-        meta = {
-            "mode": "quick" if args.quick else "full", "created_unix": time.time(), "created": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-            "config": cfg, "machine": info, "machine_string": machine, "jaxflare_version": getattr(jaxflare, "__version__", "unknown"),
-            "quality_levels": {k: dataclasses.asdict(v) for k, v in jaxflare.QUALITY_LEVELS.items()}, "skipped": bench.skipped,
-            "elapsed_s": elapsed,
-            "method": (
+        meta = run_meta(
+            None, args.quick, cfg, info, machine,
+            quality_levels={k: dataclasses.asdict(v) for k, v in jaxflare.QUALITY_LEVELS.items()}, skipped=bench.skipped,
+            elapsed_s=elapsed,
+            method=(
                 "wall = time.perf_counter around jaxflare.render after a warm-up render of each configuration; median of two seeds. "
                 "Noise on image[..., :3] (no core): sigma^2 = ||A - B||^2 / 2, ||mu||^2 = ||mean||^2 - sigma^2 / 2, relative RMSE = "
                 "sqrt(sigma^2 / ||mu||^2). Reduced vs full (independent seeds): raw^2 = mean_i ||R_i - mean(F)||^2 / ||mu_F||^2, "
                 "bias^2 = raw^2 - (sigma_F^2 / 2 + sigma_R^2) / ||mu_F||^2; paired (same seeds): raw = bias = "
                 "sqrt(mean_i ||R_i - F_i||^2 / ||mu_F||^2)."
             ),
-        }
+        )
         if load_average() is not None and info["load_average_end"] > 0.25 * cpus:
             log(f"\n  WARNING: 1-minute load average at the end {info['load_average_end']:.2f} on {cpus} CPUs: other work ran alongside; timings are noisy")
         written = write_outputs(bench, meta, out_dir, log)
@@ -834,8 +756,7 @@ def main(argv: list[str] | None = None) -> int:
     log("\n" + summary_text(bench))
     for note in bench.skipped:
         log(f"skipped: {note}")
-    shown = [str(p.relative_to(REPO)) if p.is_relative_to(REPO) else str(p) for p in written]
-    log(f"\n{elapsed:.1f} s; wrote {', '.join(shown)}")
+    log(f"\n{elapsed:.1f} s; wrote {shown_paths(written)}")
     return 0 if (bench.convergence_rows or bench.choice_rows) and not any("failed" in s for s in bench.skipped) else 1
 
 

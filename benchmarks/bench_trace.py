@@ -20,13 +20,8 @@ Outputs (atomic writes): ``benchmarks/results/trace_throughput.{csv,json,png}``
 
 from __future__ import annotations
 
-import argparse
-import csv
-import io
-import json
 import math
 import os
-import platform
 import statistics
 import sys
 import time
@@ -36,14 +31,21 @@ from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-REPO = HERE.parent
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
+from _harness import (
+    Outputs,
+    add_out_option,
+    add_stem_option,
+    announce,
+    cpu_label,
+    log,
+    make_parser,
+    pyplot,
+    quick_stem,
+    run_meta,
+    shown_paths,
+    timed,
+)
 
-from jaxflare.io._atomic import write_bytes_atomic  # noqa: E402
-
-DEFAULT_OUT = HERE / "results"
 STEM = "trace_throughput"
 WAVELENGTH_NM = 587.56
 START_Z_MM = -5.0
@@ -67,81 +69,6 @@ CSV_FIELDS = [
 
 
 # --------------------------------------------------------------------------- utilities
-
-
-def machine_info() -> dict:
-    import jax
-
-    info = {
-        "platform": platform.platform(),
-        "machine": platform.machine(),
-        "processor": platform.processor() or "n/a",
-        "python": platform.python_version(),
-        "cpu_count": os.cpu_count(),
-        "jax": jax.__version__,
-        "jax_backend": jax.default_backend(),
-        "jax_devices": [str(d) for d in jax.devices()],
-        "jax_x64": bool(jax.config.jax_enable_x64),
-        "numpy": np.__version__,
-    }
-    try:
-        import jaxlib
-
-        info["jaxlib"] = jaxlib.__version__
-    except Exception:  # pragma: no cover
-        pass
-    try:
-        sched = os.sched_getaffinity(0)
-        info["usable_cpus"] = len(sched)
-    except AttributeError:  # pragma: no cover
-        pass
-    try:
-        with open("/proc/cpuinfo") as handle:
-            for line in handle:
-                if line.startswith("model name"):
-                    info["cpu_model"] = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return info
-
-
-def load_average() -> float | None:
-    try:
-        return round(os.getloadavg()[0], 2)
-    except (AttributeError, OSError):
-        return None
-
-
-def machine_string(info: dict) -> str:
-    return (
-        f"{info.get('cpu_model', info['processor'])}; {info['cpu_count']} CPUs; {info['platform']}; "
-        f"python {info['python']}; jax {info['jax']} ({info['jax_backend']})"
-    )
-
-
-def announce(name: str, quick: bool, log) -> tuple[dict, str]:
-    """Print a benchmark's header (machine, devices, a warning when the CPUs are already busy,
-    the output folder) and return the machine description (dict and one line)."""
-    info = machine_info()
-    machine = machine_string(info)
-    info["load_average_start"] = load_average()
-    log(f"{name} ({'quick' if quick else 'full'}): {machine}")
-    log(f"  devices: {', '.join(info['jax_devices'])}")
-    cpus = info.get("usable_cpus") or info["cpu_count"] or 1
-    if info["load_average_start"] is not None and info["load_average_start"] > 0.25 * cpus:
-        log(f"  WARNING: 1-minute load average {info['load_average_start']:.2f} on {cpus} CPUs: timings will be pessimistic and noisy")
-    return info, machine
-
-
-def timed(fn, repeats: int):
-    """(median seconds, all times, last result) of ``repeats`` calls of ``fn`` (which blocks)."""
-    times, result = [], None
-    for _ in range(max(repeats, 1)):
-        t0 = time.perf_counter()
-        result = fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), times, result
 
 
 def ghost_sample(paths: list, count: int) -> list:
@@ -189,27 +116,30 @@ def make_rays(lens, count: int, seed: int, start_z: float) -> tuple[np.ndarray, 
 class JaxflareBench:
     def __init__(self, lens):
         import jax
+
         import jaxflare
-        from jaxflare import _trace
 
         self.jax = jax
         self.jaxflare = jaxflare
         self.lens = lens
-        self._counter = getattr(_trace, "TRACE_COMPILATIONS", None)
-        self._path_events = getattr(_trace, "path_events", None)
-        self._stop_passes = getattr(_trace, "_stop_pass_count", None)
         self.compile_s: dict = {}
         """Wall time of the first call of each compiled variant, keyed by (rays, stop passes)."""
 
-    def compilations(self) -> int:
-        return self._counter[0] if self._counter is not None else -1
+    @staticmethod
+    def compilations() -> int:
+        """How often the exact-trace kernel has been traced (compiled) in this process."""
+        import equinox as eqx
+
+        from jaxflare.optics import trace_events
+
+        return eqx.debug.get_num_traces(trace_events.__wrapped__)
 
     def variant(self, count: int, path) -> tuple:
         """The key of the compiled function a call uses: jaxflare compiles once per ray count and
         number of stop passes (1 for the primary path, 1 or 3 for ghosts); the path itself is data."""
-        if self._path_events is None or self._stop_passes is None:
-            return (count, path)
-        return (count, self._stop_passes(self._path_events(self.lens, path), self.lens.stop_index))
+        from jaxflare.optics import path_events, stop_pass_count
+
+        return (count, stop_pass_count(path_events(self.lens, path), self.lens.stop_index))
 
     def put(self, origins: np.ndarray, directions: np.ndarray):
         jnp = self.jax.numpy
@@ -228,8 +158,7 @@ class JaxflareBench:
             t0 = time.perf_counter()
             self.call(origins, directions, path)
             elapsed = time.perf_counter() - t0
-            compiled = self.compilations() != before if before >= 0 else True
-            self.compile_s[key] = elapsed if compiled else 0.0
+            self.compile_s[key] = elapsed if self.compilations() != before else 0.0
         return self.compile_s[key]
 
 
@@ -675,58 +604,15 @@ def summary_table(rows: list[dict], lens_infos: list[dict]) -> str:
 
 
 def write_outputs(rows: list[dict], meta: dict, out_dir: Path, stem: str, log) -> list[Path]:
-    written = []
-    # CSV
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=CSV_FIELDS, lineterminator="\n")
-    writer.writeheader()
-    for r in rows:
-        writer.writerow({k: r.get(k) for k in CSV_FIELDS})
-    path = out_dir / f"{stem}.csv"
-    write_bytes_atomic(path, buffer.getvalue().encode())
-    written.append(path)
-    # JSON
-    path = out_dir / f"{stem}.json"
-    payload = _finite_or_null(dict(meta, rows=rows))
-    write_bytes_atomic(path, (json.dumps(payload, indent=1, default=_json_default, allow_nan=False) + "\n").encode())
-    written.append(path)
-    # PNG
-    try:
-        path = out_dir / f"{stem}.png"
-        write_bytes_atomic(path, _chart_png(rows, meta))
-        written.append(path)
-    except Exception as error:  # a chart failure must not lose the numbers
-        log(f"chart not written: {type(error).__name__}: {error}")
-    return written
+    out = Outputs(out_dir, log)
+    out.csv(f"{stem}.csv", rows, CSV_FIELDS)
+    out.json(f"{stem}.json", dict(meta, rows=rows))
+    out.chart(f"{stem}.png", _chart, rows, meta)
+    return out.written
 
 
-def _finite_or_null(value):
-    """Strict JSON: NaN and infinities become null."""
-    if isinstance(value, dict):
-        return {k: _finite_or_null(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite_or_null(v) for v in value]
-    if isinstance(value, (float, np.floating)) and not math.isfinite(float(value)):
-        return None
-    return value
-
-
-def _json_default(value):
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, Path):
-        return str(value)
-    return str(value)
-
-
-def _chart_png(rows: list[dict], meta: dict) -> bytes:
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-
+def _chart(rows: list[dict], meta: dict):
+    plt = pyplot()
     lenses = [info for info in meta["lenses"]]
     fig, axes = plt.subplots(1, max(len(lenses), 1), figsize=(max(5.2 * len(lenses), 7.5), 5.2), squeeze=False, sharey=True)
     styles = {
@@ -759,19 +645,15 @@ def _chart_png(rows: list[dict], meta: dict) -> bytes:
     axes[0][0].set_ylabel("rays / s")
     m = meta["machine"]
     fig.suptitle(f"Exact-trace throughput: jaxflare (float32) vs optiland {meta.get('optiland_version') or '(skipped)'} (float64)\n"
-                 f"{m.get('cpu_model', m.get('processor'))}, {m.get('cpu_count')} CPUs, jax {m.get('jax')}, "
+                 f"{cpu_label(m)}, jax {m.get('jax')}, "
                  f"load avg {m.get('load_average_start')}", fontsize=9)
     fig.legend(list(handles.values()), list(handles.keys()), loc="lower center", ncol=3, fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0.14, 1, 1))
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=110)
-    plt.close(fig)
-    return buffer.getvalue()
+    return fig
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="smoke test: small batches, 2 repeats, one lens (< 60 s)")
+    parser = make_parser(__doc__, "smoke test: small batches, 2 repeats, one lens (< 60 s)")
     parser.add_argument("--lenses", nargs="+", help="lens file stems (default: Biotar, Angenieux, Nikon 28-70)")
     parser.add_argument("--batches", nargs="+", type=int, help="batch sizes (rays per call)")
     parser.add_argument("--repeats", type=int, help="timed repeats per measurement (median reported)")
@@ -779,8 +661,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ghost-sample", type=int, help="number of ghost paths timed individually")
     parser.add_argument("--all-ghost-rays", type=int, help="rays per path for the all-ghost-paths total")
     parser.add_argument("--no-optiland", action="store_true", help="skip the optiland comparison")
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output folder (default benchmarks/results)")
-    parser.add_argument("--stem", help="output file stem (default trace_throughput, or trace_throughput_quick with --quick)")
+    add_out_option(parser, quick_folder=False)
+    add_stem_option(parser, "output file stem (default trace_throughput, or trace_throughput_quick with --quick)")
     args = parser.parse_args(argv)
 
     cfg = dict(QUICK if args.quick else FULL)
@@ -791,10 +673,7 @@ def main(argv: list[str] | None = None) -> int:
     for key in ("repeats", "ghost_repeats", "ghost_sample", "all_ghost_rays"):
         if getattr(args, key):
             cfg[key] = getattr(args, key)
-    stem = args.stem or (STEM + "_quick" if args.quick else STEM)
-
-    def log(message: str = "") -> None:
-        print(message, flush=True)
+    stem = quick_stem(args, STEM)
 
     started = time.perf_counter()
     try:
@@ -806,14 +685,7 @@ def main(argv: list[str] | None = None) -> int:
     if jax.config.jax_enable_x64:
         log("WARNING: jax_enable_x64 is on; this benchmark is meant for float32 (the default render precision)")
 
-    info = machine_info()
-    machine = machine_string(info)
-    log(f"bench_trace ({'quick' if args.quick else 'full'}): {machine}")
-    load = load_average()
-    info["load_average_start"] = load
-    if load is not None and load > 0.25 * (info.get("usable_cpus") or info["cpu_count"] or 1):
-        log(f"  WARNING: 1-minute load average is {load:.2f} on {info.get('usable_cpus') or info['cpu_count']} CPUs before starting: "
-            "other processes compete for the cores and the timings will be pessimistic and noisy")
+    info, machine = announce("bench_trace", args.quick, log)
     log(f"  batches {cfg['batches']}, {cfg['repeats']} repeats (median), ghost sample {cfg['ghost_sample']} paths, "
         f"all-ghost pass {cfg['all_ghost_rays']} rays/path")
 
@@ -859,36 +731,28 @@ def main(argv: list[str] | None = None) -> int:
         lens_infos.append(lens_info)
 
     elapsed = time.perf_counter() - started
-    info["load_average_end"] = load_average()
-    meta = {
-        "benchmark": "trace_throughput",
-        "mode": "quick" if args.quick else "full",
-        "created_unix": time.time(),
-        "created": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-        "config": cfg,
-        "wavelength_nm": WAVELENGTH_NM,
-        "machine": info,
-        "machine_string": machine,
-        "jaxflare_version": getattr(jaxflare, "__version__", "unknown"),
-        "optiland_version": ol["version"] if ol else None,
-        "optiland_status": optiland_status,
-        "skipped": skipped,
-        "lenses": lens_infos,
-        "elapsed_s": elapsed,
-        "method": (
+    meta = run_meta(
+        "trace_throughput", args.quick, cfg, info, machine,
+        after_config={"wavelength_nm": WAVELENGTH_NM},
+        optiland_version=ol["version"] if ol else None,
+        optiland_status=optiland_status,
+        skipped=skipped,
+        lenses=lens_infos,
+        elapsed_s=elapsed,
+        method=(
             "median of `repeats` timed calls after one warm-up call per compiled shape (its wall time = compile_s for jaxflare; "
             "for optiland compile_s = first call - median, i.e. Numba JIT + caches); jax.block_until_ready on every call; "
             "rays/s = batch_rays * num_paths / median_s. jaxflare float32, optiland float64 NumPy backend with "
             "record=False for the primary path (ghost sequences always record)."
         ),
-    }
+    )
     written = write_outputs(rows, meta, args.out, stem, log)
     log("\n" + summary_table(rows, lens_infos))
     if ol is None:
         log(f"\noptiland comparison {optiland_status}")
     for note in skipped:
         log(f"skipped: {note}")
-    log(f"\nwrote {', '.join(str(p.relative_to(REPO)) if p.is_relative_to(REPO) else str(p) for p in written)} in {elapsed:.1f} s")
+    log(f"\nwrote {shown_paths(written)} in {elapsed:.1f} s")
     return 0 if rows else 1
 
 

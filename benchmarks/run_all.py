@@ -15,8 +15,13 @@ Convention for a benchmark module ``benchmarks/bench_<name>.py``:
 - importing it does no work (heavy imports may happen at import time, measurements must not);
 - it writes its results under ``benchmarks/results/`` atomically (temporary file + ``os.replace``); with
   ``--quick`` it must not overwrite the full results (``bench_trace``/``bench_polynomial`` write ``*_quick.*``,
-  ``bench_render`` writes into a new temporary folder and prints where);
-- it returns 0 (or None) on success and a non-zero code on failure.
+  ``bench_render``, ``bench_sampling`` and ``bench_fitting`` write into a new temporary folder and print where);
+- it returns 0 (or None) on success and a non-zero code on failure;
+- what it shares with the others (command-line pieces, machine header, JSON/CSV/PNG writers, chart and
+  timing helpers, render measurements) it imports from the sibling module ``_harness``, never from
+  another benchmark, and it uses only jaxflare's public API. This folder is first on ``sys.path`` when
+  a script in it is run (``python benchmarks/run_all.py`` or ``python benchmarks/bench_x.py``), so
+  ``from _harness import ...`` needs no path edits.
 
 Benchmarks run in this process one after another, in file-name order; a failure (non-zero return or an
 exception) is reported and the remaining benchmarks still run. The exit code is non-zero if any failed.
@@ -32,7 +37,6 @@ import traceback
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-REPO = HERE.parent
 
 
 def discover() -> list[Path]:
@@ -61,10 +65,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", nargs="+", metavar="NAME", help="run only these benchmarks (e.g. trace or bench_trace)")
     parser.add_argument("--list", action="store_true", help="list the benchmarks and exit")
     args = parser.parse_args(argv)
-
-    for path in (str(REPO), str(HERE)):
-        if path not in sys.path:
-            sys.path.insert(0, path)
 
     benches = discover()
     if args.only:
