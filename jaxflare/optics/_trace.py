@@ -22,7 +22,6 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from ._glass import sellmeier_index
 from ._lens import Lens
 from ._paths import EventAction, EventTable, GhostPath, event_table, ghost_paths, path_events, stop_pass_count
 from ._surface import Vector, facing_normal, inside_iris, intersect, refract_or_reflect, safe_divide
