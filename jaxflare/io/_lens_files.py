@@ -6,7 +6,7 @@ import difflib
 import os
 from importlib import resources
 
-from ..optics import Lens, LensPrescription, build_lens
+from ..optics import LensPrescription
 from ._lens_toml import read_lens_toml
 
 
@@ -45,8 +45,10 @@ def read_prescription(source: str | os.PathLike) -> LensPrescription:
     )
 
 
-def load_lens(source: str | os.PathLike | LensPrescription, zoom_position: int = 0) -> Lens:
+def load_lens(source: str | os.PathLike | LensPrescription, zoom_position: int = 0):
     """Load a lens: a bundled name (see :func:`bundled_lens_names`), a path to a jaxflare ``.toml``
     lens file, a Zemax ``.zmx`` path, or a :class:`LensPrescription`. Zooms start at position 0."""
+    from ..optics import build_lens  # JAX: only when a lens is built
+
     prescription = source if isinstance(source, LensPrescription) else read_prescription(source)
     return build_lens(prescription, zoom_position)
