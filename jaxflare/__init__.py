@@ -91,9 +91,56 @@ _LAZY = {
 }
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
-    from .io import bundled_lens_names, lens_toml_text, load_lens, parse_lens_toml, plot_cross_section, read_exr, read_lens_toml, read_prescription, read_zmx, save_cross_section, write_exr, write_zmx
-    from .optics import COATING_PRESETS, CoatingLayerSpec, CoatingSpec, Glass, Lens, LensFormatError, LensPrescription, LensWarning, MediumSpec, SurfaceSpec, TraceResult, UnknownGlassError, build_lens, find_glass, ghost_paths, half_field_of_view_deg, model_glass, nearest_glass, path_events, path_fresnel_factor, rank_ghost_paths, trace, with_coating, with_coating_layers
-    from .polynomial import PathDomain, PathSystem, PathSystemReport, default_cache_dir, make_domain, path_system, path_systems, refit
+    from .io import (
+        bundled_lens_names,
+        lens_toml_text,
+        load_lens,
+        parse_lens_toml,
+        plot_cross_section,
+        read_exr,
+        read_lens_toml,
+        read_prescription,
+        read_zmx,
+        save_cross_section,
+        write_exr,
+        write_zmx,
+    )
+    from .optics import (
+        COATING_PRESETS,
+        CoatingLayerSpec,
+        CoatingSpec,
+        Glass,
+        Lens,
+        LensFormatError,
+        LensPrescription,
+        LensWarning,
+        MediumSpec,
+        SurfaceSpec,
+        TraceResult,
+        UnknownGlassError,
+        build_lens,
+        find_glass,
+        ghost_paths,
+        half_field_of_view_deg,
+        model_glass,
+        nearest_glass,
+        path_events,
+        path_fresnel_factor,
+        rank_ghost_paths,
+        trace,
+        with_coating,
+        with_coating_layers,
+    )
+    from .polynomial import (
+        PathDomain,
+        PathSystem,
+        PathSystemReport,
+        default_cache_dir,
+        make_domain,
+        path_system,
+        path_systems,
+        refit,
+    )
     from .rendering import QUALITY_LEVELS, RenderResult, RenderStatistics, render
     from .scenes import Camera, Distortion, Geometry, Hood, Light, RenderSettings, Scene, SceneError, SurfaceCoating, load_scene
 

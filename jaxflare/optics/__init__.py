@@ -22,15 +22,15 @@ from typing import TYPE_CHECKING
 
 from ._prescription import (
     AIR,
+    DEFAULT_COATING,
+    SURFACE_KINDS,
+    UNCOATED,
     CoatingLayerSpec,
     CoatingSpec,
-    DEFAULT_COATING,
     LensFormatError,
     LensPrescription,
     MediumSpec,
-    SURFACE_KINDS,
     SurfaceSpec,
-    UNCOATED,
 )
 
 # Everything else imports JAX: loaded on first use (PEP 562), so that reading and writing lens
@@ -101,12 +101,59 @@ _LAZY = {
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from ._coatings import COATING_PRESETS, with_coating, with_coating_layers
     from ._field import cast_floating, entrance_plane_z_mm, front_rim_sag_mm, half_field_of_view_deg
-    from ._glass import C_LINE_NM, D_LINE_NM, F_LINE_NM, Glass, UnknownGlassError, catalogs, find_glass, glass_names, model_glass, nearest_glass, sellmeier_index
-    from ._lens import Lens, LensWarning, STATED_INDEX_TOLERANCE, build_lens
-    from ._paths import EventAction, EventColumn, EventTable, GhostPath, active_event_count, check_ghost_path, event_table, ghost_paths, path_events, stop_pass_count
-    from ._surface import BEHIND_TOLERANCE_MM, SurfaceKind, facing_normal, inside_iris, intersect, meridian_weights, reflect, refract, safe_divide, safe_sqrt, sag_and_slope, surface_sag_mm
+    from ._glass import (
+        C_LINE_NM,
+        D_LINE_NM,
+        F_LINE_NM,
+        Glass,
+        UnknownGlassError,
+        catalogs,
+        find_glass,
+        glass_names,
+        model_glass,
+        nearest_glass,
+        sellmeier_index,
+    )
+    from ._lens import STATED_INDEX_TOLERANCE, Lens, LensWarning, build_lens
+    from ._paths import (
+        EventAction,
+        EventColumn,
+        EventTable,
+        GhostPath,
+        active_event_count,
+        check_ghost_path,
+        event_table,
+        ghost_paths,
+        path_events,
+        stop_pass_count,
+    )
+    from ._surface import (
+        BEHIND_TOLERANCE_MM,
+        SurfaceKind,
+        facing_normal,
+        inside_iris,
+        intersect,
+        meridian_weights,
+        reflect,
+        refract,
+        safe_divide,
+        safe_sqrt,
+        sag_and_slope,
+        surface_sag_mm,
+    )
     from ._thin_film import coated_reflectance, coated_reflectance_sp, schlick_reflectance, uncoated_reflectance
-    from ._trace import LossReason, TraceResult, media_indices, on_axis_fresnel, path_fresnel_factor, rank_ghost_paths, ray_arguments, strongest_ghost_path, trace, trace_events
+    from ._trace import (
+        LossReason,
+        TraceResult,
+        media_indices,
+        on_axis_fresnel,
+        path_fresnel_factor,
+        rank_ghost_paths,
+        ray_arguments,
+        strongest_ghost_path,
+        trace,
+        trace_events,
+    )
     from ._tracer import AbstractPathTracer, ExactPathTracer
 
 
