@@ -339,6 +339,12 @@ def read_lentil_json(path: str | os.PathLike, lens_id: str | None = None, data: 
     if not any(s.is_stop for s in surfaces):
         surfaces = _choose_stop(surfaces, where_lens, notes, "the lens has no 'iris' element")
     focal = entry.get("focal-length-mm-patent") if key == "optical-elements-patent" else None
+    kinds = {s.kind for s in surfaces} - {"spherical"}
+    plane = "y"
+    if len(kinds) == 1 and focal is not None:
+        # an anamorphic: the stated focal length is the squeezed meridian's, the one with cylinder power
+        plane = "x" if kinds == {"cylindrical_x"} else "y"
+        notes.append(f"anamorphic (cylinders with power in {plane} only): the stated focal length is read as the {plane}-plane focal length")
     name = " ".join(str(entry.get(k)) for k in ("company", "product-name") if entry.get(k)) or f"lentil lens {lens_id}"
     source = f"lentil lens database {base}, lens {lens_id}" + (f", patent {entry['patent-number']}" if entry.get("patent-number") else "")
     if entry.get("notes"):
@@ -346,7 +352,7 @@ def read_lentil_json(path: str | os.PathLike, lens_id: str | None = None, data: 
     return LensPrescription(
         name=name, surfaces=tuple(surfaces), source=source,
         stated_focal_length_mm=_number(focal, where_lens, "focal-length-mm-patent", minimum=0.0) or None if focal is not None else None,
-        notes="\n".join(notes), path=filename,
+        stated_focal_length_plane=plane, notes="\n".join(notes), path=filename,
     )
 
 

@@ -736,6 +736,13 @@ class _Reader:
         if surf.flap is not None or surf.stop is not None:
             return diam if diam > 0.0 else math.nan
         mema = self.length(surf.mema, 0, "mechanical semi-diameter") if surf.mema is not None else math.nan
+        if mema > 0.0 and surf.curv is not None:
+            # beyond the rim of a sphere (or of a conic with k > -1) the element's edge is the flat
+            # annulus OpticStudio draws out to MEMA, not the refracting surface
+            curvature = abs(self.number(surf.curv, 0, "curvature")) / float(self.scale())
+            conic = self.number(surf.coni, 0, "conic") if surf.coni is not None else 0.0
+            if curvature > 0.0 and conic > -1.0:
+                mema = min(mema, 0.98 / (curvature * math.sqrt(1.0 + conic)))
         edge = max((v for v in (diam, mema) if v > 0.0), default=math.nan)  # the edge of the glass
         return edge if is_interface else math.nan
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from .._version import __version__
 from ..colour import display_matrix, spectral_table
-from ..io import tone_map, write_exr, write_png
+from ..io import atomic_output_group, is_jaxflare_png, tone_map, write_exr, write_png
 from ..scenes import Scene
 from ._quality import radiance_scale
 
@@ -177,6 +177,21 @@ class RenderResult:
     def write_png(self, path, **options) -> str:
         write_png(path, self.preview(**options))
         return os.fspath(path)
+
+    def write_files(self, exr_path, *, png: bool = False) -> list[str]:
+        """The EXR and, with ``png``, its preview ``<stem>.png``, committed together
+        (:func:`jaxflare.io.atomic_output_group`): a reader never sees an EXR and a PNG of two
+        different renders. Without ``png`` a preview that an earlier render wrote beside the EXR
+        (a jaxflare PNG) is removed; any other PNG is left alone. Returns the paths written."""
+        exr_path = os.fspath(exr_path)
+        png_path = os.path.splitext(exr_path)[0] + ".png"
+        targets = [exr_path] + ([png_path] if png else [])
+        stale = () if png or not is_jaxflare_png(png_path) else (png_path,)
+        with atomic_output_group(targets, stale=stale) as temporaries:
+            self.write_exr(temporaries[0])
+            if png:
+                self.write_png(temporaries[1])
+        return targets
 
 
 def render_result(plan, acc, render_seconds: float, table_updates: int, *, time_now: float) -> RenderResult:
