@@ -41,7 +41,7 @@ from ._lens_formats import (
     read_realflare_json,
 )
 from ._lens_toml import lens_toml_text, parse_lens_toml, read_lens_toml
-from ._text_input import MAX_INPUT_BYTES, read_input_bytes, read_text_file
+from ._text_input import MAX_INPUT_BYTES, decode_text, read_input_bytes, read_text_file
 from ._zemax import decode_zmx_bytes, parse_zmx, read_zmx, write_zmx, zmx_text
 
 # Images, previews and plots need OpenEXR, Pillow or matplotlib (and plots JAX): loaded on first
@@ -117,6 +117,7 @@ __all__ = [
     "atomic_output_group",
     "atomic_output_path",
     "bundled_lens_names",
+    "decode_text",
     "decode_zmx_bytes",
     "is_jaxflare_png",
     "lens_toml_text",
