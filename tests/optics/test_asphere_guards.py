@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import jaxflare
-from jaxflare.optics import cast_floating, intersect
+from jaxflare.optics import Vector, cast_floating, intersect
 from tests.helpers import lens_from_toml
 
 # A strong moulded asphere (f ~ 10 mm at f/1, like a Thorlabs AL1815 condenser) with terms up to
@@ -46,20 +46,20 @@ def _finite_everywhere(lens, origins, directions, path):
             jnp.where(r.valid[:, None, None], r.stop_positions, 0.0)
         )
 
-    grad_rays, grad_lens = eqx.filter_grad(lambda args: loss(*args))((origins, lens))
+    grad_rays, grad_lens = eqx.filter_jit(eqx.filter_grad(lambda args: loss(*args)))((origins, lens))  # jitted: op by op is 3x slower
     assert bool(jnp.all(jnp.isfinite(grad_rays)))
     leaves = [x for x in jax.tree.leaves(grad_lens) if hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating)]
     assert all(bool(jnp.all(jnp.isfinite(x))) for x in leaves)
     return result
 
 
-@pytest.mark.parametrize("path", [None, (1, 0), (2, 0)])
+@pytest.mark.parametrize("path", [None, (2, 0)])
 def test_asphere_rays_far_outside_stay_finite_in_float32(path):
-    origins, directions = _rays(2048, 40.0, 0.6)
+    origins, directions = _rays(512, 40.0, 0.6)
     with jax.enable_x64(False):
         lens = cast_floating(lens_from_toml(ASPHERE), jnp.float32)
         result = _finite_everywhere(lens, jnp.asarray(origins, jnp.float32), jnp.asarray(directions, jnp.float32), path)
-        assert 0 < int(result.valid.sum()) < 2048  # some pass, most are outside the 9 mm apertures
+        assert 0 < int(result.valid.sum()) < 512  # some pass, most are outside the 9 mm apertures
         positions32, valid32 = np.asarray(result.positions, np.float64), np.asarray(result.valid)
     # the rays that pass are traced as in float64
     lens64 = lens_from_toml(ASPHERE)
@@ -73,7 +73,7 @@ def test_fisheye_grazing_rays_stay_finite():
     """The bundled fisheye, with rays up to 80 degrees off axis across the whole front element."""
     lens = jaxflare.load_lens("minolta_fisheye")
     semi = float(lens.semi_aperture_mm[0])
-    origins, directions = _rays(1024, 1.5 * semi, 5.7, seed=3)
+    origins, directions = _rays(256, 1.5 * semi, 5.7, seed=3)
     with jax.enable_x64(False):
         lens32 = cast_floating(lens, jnp.float32)
         _finite_everywhere(lens32, jnp.asarray(origins, jnp.float32), jnp.asarray(directions, jnp.float32), None)
@@ -81,11 +81,11 @@ def test_fisheye_grazing_rays_stay_finite():
 
 def test_intersect_gives_a_missing_ray_its_own_origin():
     """A miss returns the ray's origin and a normal facing -z: finite whatever the polynomial does."""
-    origin = jnp.array([[35.6, 0.93, -5.0]], jnp.float32)
-    direction = jnp.array([[-0.376, -0.162, 0.912]], jnp.float32)
+    origin = Vector(*(jnp.array([v], jnp.float32) for v in (35.6, 0.93, -5.0)))
+    direction = Vector(*(jnp.array([v], jnp.float32) for v in (-0.376, -0.162, 0.912)))
     coefficients = jnp.array([1.2e-4, -3.0e-6, 2.0e-8, -1.0e-10], jnp.float32)
     with jax.enable_x64(False):
         point, normal, hit = intersect(origin, direction, 0.0, jnp.float32(1 / 8), jnp.float32(-1.6), coefficients, jnp.int32(0), True)
     assert not bool(hit[0])
-    np.testing.assert_array_equal(np.asarray(point), np.asarray(origin))
-    np.testing.assert_array_equal(np.asarray(normal), [[0.0, 0.0, -1.0]])
+    np.testing.assert_array_equal(np.stack(point, axis=-1), np.stack(origin, axis=-1))
+    np.testing.assert_array_equal(np.stack(normal, axis=-1), [[0.0, 0.0, -1.0]])
