@@ -4,6 +4,7 @@ glass names the catalogs lack."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import difflib
 import math
@@ -162,11 +163,25 @@ def read_prescription(
             )
         with resources.as_file(_bundled_directory() / f"{text}.toml") as path:
             prescription = read_lens_toml(path)
-    if glass_aliases:
-        prescription = apply_glass_aliases(prescription, glass_aliases)
-    prescription = apply_semi_aperture_mode(prescription, semi_aperture)
-    check_prescription(prescription)
+    with _naming_the_file(text if _is_file_path(text) else ""):
+        if glass_aliases:
+            prescription = apply_glass_aliases(prescription, glass_aliases)
+        prescription = apply_semi_aperture_mode(prescription, semi_aperture)
+        check_prescription(prescription)
     return prescription
+
+
+@contextlib.contextmanager
+def _naming_the_file(path: str):
+    """Checks made after a file is read (apertures, glasses, the built lens) name a surface; a
+    :class:`LensFormatError` from them names the file too."""
+    try:
+        yield
+    except LensFormatError as error:
+        message = str(error)
+        if path and path not in message:
+            raise LensFormatError(f"{path}: {message}") from None
+        raise
 
 
 def load_lens(
@@ -187,4 +202,6 @@ def load_lens(
         prescription = apply_semi_aperture_mode(prescription, semi_aperture)
     else:
         prescription = read_prescription(source, semi_aperture=semi_aperture, glass_aliases=glass_aliases)
-    return build_lens(prescription, zoom_position)
+    source_path = "" if isinstance(source, LensPrescription) else os.fspath(source)
+    with _naming_the_file(source_path if _is_file_path(source_path) else ""):
+        return build_lens(prescription, zoom_position)
