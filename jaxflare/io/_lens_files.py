@@ -179,7 +179,7 @@ def _naming_the_file(path: str):
         yield
     except LensFormatError as error:
         message = str(error)
-        if path and path not in message:
+        if path and os.path.basename(path.split("#")[0]) not in message:  # messages may name the file by its base name
             raise LensFormatError(f"{path}: {message}") from None
         raise
 

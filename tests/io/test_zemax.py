@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+import jaxflare
 from jaxflare.optics import (
     AIR,
     CoatingSpec,
@@ -783,3 +784,16 @@ def test_write_zmx_non_ascii_text_is_replaced(tmp_path):
     path = tmp_path / "x.zmx"
     write_zmx(p, path)
     assert read_zmx(path).name == "Objektiv f?r Tests ? 50 mm"
+
+
+def test_unknown_catalog_glass_is_an_error_naming_the_line_not_a_substitution(tmp_path):
+    """Issue 17: an unknown N-LASF55 with leftover model columns became n_d 1.5168 with only a
+    warning. The columns are no stated values: the load fails naming the file, line and glass,
+    with near matches and the way to map it (glass_aliases); the alias then loads it."""
+    path = tmp_path / "singlet.zmx"
+    path.write_text(SINGLET.replace("GLAS N-BK7 0 0 1.5168 64.17 0 0 0 0 0 0", "GLAS N-LASF55 0 0 1.5168 64.17 0 0 0 0 0 0"))
+    with pytest.raises(LensFormatError, match=r"^singlet\.zmx:\d+: SURF 1 \(surface 0\): unknown glass 'N-LASF55'.*glass_aliases") as info:
+        jaxflare.load_lens(path)
+    assert str(path) not in str(info.value)  # named once, not twice
+    lens = jaxflare.load_lens(path, glass_aliases={"N-LASF55": "SCHOTT:N-LASF45"})
+    assert lens.prescription.surfaces[0].medium.glass == "N-LASF45" and "N-LASF55" in lens.prescription.notes
