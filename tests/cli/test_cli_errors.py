@@ -159,3 +159,30 @@ def test_signal_while_writing_leaves_no_temporary_file(tmp_path, signum, status,
     assert child.returncode == status
     assert err.strip().splitlines()[-1] == line and "Traceback" not in err
     assert list(target.parent.iterdir()) == []  # no temporary file, no half-written target
+
+
+LAZY_CHILD = textwrap.dedent(
+    """
+    import contextlib, io, sys
+    from jaxflare.cli import main
+    with contextlib.redirect_stdout(io.StringIO()):
+        try:
+            main(["--help"])
+        except SystemExit:
+            pass
+        assert main(["lens", "convert", sys.argv[1], sys.argv[2]]) == 0
+    heavy = sorted(name for name in ("jax", "matplotlib", "OpenEXR", "equinox") if name in sys.modules)
+    print(",".join(heavy) or "none")
+    """
+)
+
+
+def test_help_and_lens_convert_do_not_import_jax(tmp_path):
+    """--help took 2.2 s because every command imported JAX first."""
+    result = subprocess.run(
+        [sys.executable, "-c", LAZY_CHILD, str(DATA / "zmx" / "double_gauss_50mm.zmx"), str(tmp_path / "lens.toml")],
+        cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)), capture_output=True, text=True, timeout=120, check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().splitlines()[-1] == "none"
+    assert (tmp_path / "lens.toml").read_text().startswith(("#", "name"))
