@@ -83,8 +83,10 @@ def apply_semi_aperture_mode(prescription: LensPrescription, mode: str) -> LensP
         bad = [s for s in surfaces if math.isfinite(s.semi_aperture_mm) and too_large(s)]
         if bad:
             halved = sum(0.5 * s.semi_aperture_mm > abs(s.radius_mm) for s in bad)
+            # labels of most readers name the file and line already; a Zemax comment label does not
+            place = "" if os.path.basename(where or "") in bad[0].label else f"{where}: "
             raise LensFormatError(
-                f"{bad[0].label}: semi-aperture {bad[0].semi_aperture_mm:g} mm is larger than the sphere allows (|R| = {abs(bad[0].radius_mm):g} mm); "
+                f"{place}{bad[0].label}: semi-aperture {bad[0].semi_aperture_mm:g} mm is larger than the sphere allows (|R| = {abs(bad[0].radius_mm):g} mm); "
                 f"{len(bad)} of {len(surfaces)} surfaces exceed |R| ({halved} even when halved). If the column holds diameters use "
                 "semi_aperture='diameter'; to derive every semi-aperture from the stop and the marginal and chief rays use "
                 "semi_aperture='auto'; to clip them use 'clip' (command line: --semi-aperture MODE)"

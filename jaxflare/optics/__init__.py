@@ -146,11 +146,11 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from ._surface import (
         BEHIND_TOLERANCE_MM,
         SurfaceKind,
+        Vector,
         facing_normal,
         inside_iris,
         intersect,
         meridian_weights,
-        Vector,
         reflect,
         refract,
         refract_or_reflect,
