@@ -29,7 +29,19 @@ import warnings
 from collections import Counter
 from pathlib import Path
 
-from _harness import REPO, Outputs, add_out_option, add_stem_option, announce, log, make_parser, output_folder, quick_stem, run_meta, shown_paths
+from _harness import (
+    REPO,
+    Outputs,
+    add_out_option,
+    add_stem_option,
+    announce,
+    log,
+    make_parser,
+    output_folder,
+    quick_stem,
+    run_meta,
+    shown_paths,
+)
 
 import jaxflare
 
@@ -79,7 +91,7 @@ def attempt(source: str, mode: str) -> dict:
     except (jaxflare.LensFormatError, FileNotFoundError, ValueError) as error:
         message = str(error)
         return {"outcome": "refused" if "\n" not in message else "refused (multi-line)", "message": message.split("\n")[0][:300]}
-    except Exception as error:  # a crash: should have been a clear error
+    except Exception as error:  # noqa: BLE001 - a crash: should have been a clear error
         return {"outcome": "crashed", "message": f"{type(error).__name__}: {error}"[:300]}
 
 

@@ -87,7 +87,7 @@ def check_outcome(load, path: Path, what: str):
         message = str(error)
         assert "\n" not in message and path.name in message, f"{what}: {message!r}"
         return None
-    except Exception as error:  # anything else is a traceback on the command line
+    except Exception as error:  # noqa: BLE001 - anything else is a traceback on the command line
         pytest.fail(f"{what}: {type(error).__name__}: {error}")
 
 

@@ -115,7 +115,7 @@ def apply_glass_aliases(prescription: LensPrescription, aliases: Mapping[str, st
     target, ``"NAME"`` or ``"CATALOG:NAME"``; each replacement, and each alias the lens does not
     use, is written to the notes."""
     if not isinstance(aliases, Mapping):
-        raise ValueError(f"glass_aliases must be a mapping {{name: 'CATALOG:NAME'}}, got {type(aliases).__name__}")
+        raise TypeError(f"glass_aliases must be a mapping {{name: 'CATALOG:NAME'}}, got {type(aliases).__name__}")
     table = {}
     for name, target in aliases.items():
         if not isinstance(name, str) or not isinstance(target, str) or not name.strip() or not target.strip():

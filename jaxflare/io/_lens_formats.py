@@ -44,9 +44,9 @@ import json
 import math
 import os
 import re
-import xml.etree.ElementTree as ElementTree
 from collections.abc import Mapping
 from typing import Any
+from xml.etree import ElementTree
 
 from ..optics import AIR, UNCOATED, CoatingSpec, LensFormatError, LensPrescription, MediumSpec, SurfaceSpec
 from ._first_order import limiting_surface, marginal_ray

@@ -63,14 +63,13 @@ def check_text(text: str, name: str, what: str, error: type[Exception]) -> str:
 def decode_text(data: bytes, name: str, what: str, error: type[Exception]) -> str:
     """``data`` decoded as UTF-8 (a byte-order mark is dropped; UTF-16 with a BOM is accepted too),
     checked by :func:`check_text`. A byte that is not UTF-8 is ``error`` naming its line."""
-    if data.startswith(codecs.BOM_UTF16_LE) or data.startswith(codecs.BOM_UTF16_BE):
+    if data.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
         try:
             text = data.decode("utf-16")
         except UnicodeDecodeError as failure:
             raise error(f"{name}: not a text file (UTF-16 decoding failed: {failure.reason})") from None
         return check_text(text.lstrip("\ufeff"), name, what, error)
-    if data.startswith(codecs.BOM_UTF8):
-        data = data[len(codecs.BOM_UTF8) :]
+    data = data.removeprefix(codecs.BOM_UTF8)
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as failure:

@@ -366,8 +366,8 @@ class Lens(eqx.Module):
 
 
 GLASS_SUFFIX_RULES: tuple[tuple[str, str], ...] = (
-    ("_MOLD", "a moulded (precision-moulding) version of the catalog glass; its index after moulding, "
-              "typically 0.001-0.005 lower, is not modelled"),
+    ("_MOLD", ("a moulded (precision-moulding) version of the catalog glass; its index after moulding, "
+               "typically 0.001-0.005 lower, is not modelled")),
     ("-MOLD", "a moulded version of the catalog glass; its lower index after moulding is not modelled"),
 )
 """Spelling rules for glass names that catalogs lack: ``(suffix, meaning)``. A name ending in one

@@ -48,7 +48,7 @@ def check_image_memory(width: int, height: int, num_layers: int) -> None:
         limits.append(("memory", available, host_bytes + (device_bytes if on_cpu else 0)))
     try:
         stats = jax.devices()[0].memory_stats() or {}
-    except Exception:  # backends without memory statistics
+    except Exception:  # noqa: BLE001 - backends without memory statistics raise various errors
         stats = {}
     if jax.default_backend() != "cpu" and stats.get("bytes_limit"):
         limits.append(("accelerator memory", int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0)), device_bytes))

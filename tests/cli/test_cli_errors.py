@@ -151,7 +151,7 @@ def test_signal_while_writing_leaves_no_temporary_file(tmp_path, signum, status,
     )
     try:
         assert child.stdout.readline().strip() == "writing"
-        assert [p.name for p in target.parent.iterdir()][0].startswith(".tmp-")  # the write is under way
+        assert next(p.name for p in target.parent.iterdir()).startswith(".tmp-")  # the write is under way
         child.send_signal(signum)
         _, err = child.communicate(timeout=30)
     finally:

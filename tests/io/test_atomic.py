@@ -2,6 +2,7 @@
 its PNG (or a fit's JSON and its render) from two different runs; nothing temporary is left."""
 
 import os
+from pathlib import Path
 
 import pytest
 
@@ -40,8 +41,7 @@ def test_stale_companions_of_an_earlier_run_are_removed(tmp_path):
     """A run without --png removes the PNG of an earlier run: it would not belong to the new EXR."""
     write_run(tmp_path, 1)
     with atomic_output_group([tmp_path / "flare.exr"], stale=(tmp_path / "flare.png",)) as (exr_tmp,):
-        with open(exr_tmp, "w") as handle:
-            handle.write("exr of run 2")
+        Path(exr_tmp).write_text("exr of run 2")
     assert (tmp_path / "flare.exr").read_text() == "exr of run 2" and not (tmp_path / "flare.png").exists()
 
 
@@ -49,13 +49,11 @@ def test_single_file_keeps_the_old_version_on_failure_and_its_permissions(tmp_pa
     target = tmp_path / "lens.toml"
     target.write_text("old")
     os.chmod(target, 0o640)
-    with pytest.raises(ValueError):
-        with atomic_output_path(target) as temporary:
-            with open(temporary, "w") as handle:
-                handle.write("half")
-            raise ValueError("writer failed")
-    assert target.read_text() == "old" and temporaries(tmp_path) == []
-    with atomic_output_path(target) as temporary:
+    with pytest.raises(ValueError), atomic_output_path(target) as temporary:
         with open(temporary, "w") as handle:
-            handle.write("new")
+            handle.write("half")
+        raise ValueError("writer failed")
+    assert target.read_text() == "old" and temporaries(tmp_path) == []
+    with atomic_output_path(target) as temporary, open(temporary, "w") as handle:
+        handle.write("new")
     assert target.read_text() == "new" and (os.stat(target).st_mode & 0o777) == 0o640

@@ -282,9 +282,9 @@ def test_brightest_allowed_light_gives_a_finite_variance_and_writes(tmp_path):
     """Issue 17: a light of intensity 1e30 overflowed the float32 sums of squares, and the EXR
     write failed after the whole render. Now the image is 1e30 x the unit light's, the variance
     1e60 x (clipped to float32's range and counted, never Inf), and both pixel types write."""
-    light = dict(kind="directional", direction=(0.08, 0.03, -1.0))
-    unit = jf.render(make_scene(jf.Light(**light), render=dict(sampling="uniform")), samples=2**17, method="exact", seed=3)
-    bright = jf.render(make_scene(jf.Light(**light, intensity=1e30), render=dict(sampling="uniform")), samples=2**17, method="exact", seed=3)
+    light = {"kind": "directional", "direction": (0.08, 0.03, -1.0)}
+    unit = jf.render(make_scene(jf.Light(**light), render={"sampling": "uniform"}), samples=2**17, method="exact", seed=3)
+    bright = jf.render(make_scene(jf.Light(**light, intensity=1e30), render={"sampling": "uniform"}), samples=2**17, method="exact", seed=3)
     np.testing.assert_allclose(bright.image[..., :3], 1e30 * unit.image[..., :3], rtol=1e-5, atol=1e-6 * 1e30 * unit.image.max())
     variance = bright.layers["variance"]
     assert np.all(np.isfinite(variance)) and variance.max() > 0
