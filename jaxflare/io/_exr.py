@@ -262,6 +262,8 @@ def read_exr_channels(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], d
     path = os.fspath(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"no such EXR file: {path!r}")
+    if not os.path.isfile(path):
+        raise ValueError(f"{path!r} is not an OpenEXR file (a directory, device, pipe or socket)")
     with open(path, "rb") as handle:
         magic = handle.read(4)
     if magic != _EXR_MAGIC:

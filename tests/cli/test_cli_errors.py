@@ -186,3 +186,11 @@ def test_help_and_lens_convert_do_not_import_jax(tmp_path):
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip().splitlines()[-1] == "none"
     assert (tmp_path / "lens.toml").read_text().startswith(("#", "name"))
+
+
+@pytest.mark.parametrize("plate, needle", [("/dev/zero", "not a regular file"), (".", "is a directory"), ("missing.exr", "no such plate file")])
+def test_bad_plates_are_one_line_errors(plate, needle, tmp_path, capsys):
+    """The fit's plate: a device or a directory was reported as a missing file."""
+    assert main(["fit", plate, "--scene", "demo", "-o", str(tmp_path / "fit.json")]) == 2
+    one_line_error(capsys, needle)
+    assert not list(tmp_path.iterdir())
