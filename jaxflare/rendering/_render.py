@@ -41,6 +41,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 
+from .._limits import MAX_SEED
 from ..optics import GhostPath
 from ..scenes import Scene
 from ._plan import plan_render, run_batches
@@ -62,7 +63,7 @@ def render(
     Args:
         scene: the scene; its ``render`` settings apply unless overridden here.
         quality: ``"preview"`` or ``"production"`` (see :data:`QUALITY_LEVELS`); default the scene's.
-        seed: random seed; the same seed gives the same image.
+        seed: random seed, 0 .. 2^32 - 1; the same seed gives the same image.
         samples: total Monte Carlo samples (default the quality's), rounded up to whole batches.
         method: ``"exact"``, ``"polynomial"`` or ``"auto"`` (default the scene's).
         paths: render only these ghost paths ``(j, i)`` (default: every two-reflection path).
@@ -71,6 +72,8 @@ def render(
     Returns:
         A :class:`RenderResult` (image, layers, statistics; ``write_exr``/``write_png``).
     """
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
+        raise ValueError(f"seed must be an integer from 0 to {MAX_SEED:,}, got {seed!r}")
     plan = plan_render(scene, quality, seed, samples=samples, method=method, paths=paths, progress=progress is True)
     render_started = time.perf_counter()
     acc, table_updates = run_batches(plan, progress)
