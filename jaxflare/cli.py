@@ -310,6 +310,10 @@ def _run(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
     from .optics import LensFormatError
 
+    if args.command in {"demo", "fit", "render"}:  # compiled programs reused by later processes
+        from ._compilation_cache import enable_compilation_cache
+
+        enable_compilation_cache()
     try:
         if args.command == "demo":
             return _demo(args.out, args.samples)

@@ -4,6 +4,11 @@ in float64); tests that check float32 behaviour switch it off locally with ``jax
 import os
 
 os.environ.setdefault("MPLBACKEND", "Agg")
+# One persistent JAX compilation cache for the test run: the xdist workers, the notebook kernels and
+# the CLI subprocesses (which inherit the environment) load what another process compiled.
+_CACHE = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".cache")
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.join(_CACHE, "jax"))
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
 
 import jax
 

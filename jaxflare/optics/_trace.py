@@ -276,7 +276,54 @@ def _trace_events(
     )
 
 
-trace_events = eqx.filter_jit(_trace_events)
+_trace_events_jit = eqx.filter_jit(_trace_events)
+
+
+def ray_bucket(count: int) -> int:
+    """The number of rays a batch of ``count`` is traced as: the next power of two (at least 128)
+    up to :data:`CHUNK_RAYS`, then the next multiple of it. Batches of nearby sizes share one
+    compiled program (compiling costs seconds; tracing the padding, microseconds to milliseconds)."""
+    if count <= CHUNK_RAYS:
+        return max(128, 1 << max(count - 1, 0).bit_length())
+    return -(-count // CHUNK_RAYS) * CHUNK_RAYS
+
+
+def trace_events(
+    lens: Lens, origins: Array, directions: Array, wavelength_nm: Array, events: EventTable, num_stop_passes: int,
+    record_events: bool = False, fresnel: bool = True, slot: Array | None = None,
+) -> TraceResult:
+    """Trace rays along ``events``: columns of shape (E,) for one path shared by every ray; (N, E)
+    for a path per ray; or, with ``slot`` (N,), (P, E) for P paths of which ray n follows path
+    ``slot[n]``. ``num_stop_passes`` (static): how many stop crossings to record; ``fresnel``
+    (static): multiply the coated Fresnel factor of every event into ``throughput`` (else the
+    throughput is 1 for every valid ray).
+
+    Jit-compiled once per lens structure, event-table shape and :func:`ray_bucket` of the batch:
+    the rays are padded with copies of the last one up to the bucket, and the padding is cut off
+    the result (inside an outer ``jit`` this is part of that program)."""
+    count = origins.shape[0]
+    size = ray_bucket(count)
+    if count == 0 or size == count:
+        return _trace_events_jit(lens, origins, directions, wavelength_nm, events, num_stop_passes, record_events, fresnel, slot)
+
+    def pad(x):
+        x = jnp.asarray(x)
+        return jnp.concatenate([x, jnp.broadcast_to(x[-1:], (size - count,) + x.shape[1:])])
+
+    if slot is not None:
+        slot = pad(slot)
+    elif events.surface.ndim == 2:  # a path per ray
+        events = jax.tree.map(pad, events)
+    result = _trace_events_jit(lens, pad(origins), pad(directions), pad(wavelength_nm), events, num_stop_passes, record_events, fresnel, slot)
+    return TraceResult(
+        positions=result.positions[:count], directions=result.directions[:count], valid=result.valid[:count],
+        throughput=result.throughput[:count], lost_at_surface=result.lost_at_surface[:count],
+        stop_positions=result.stop_positions[:count],
+        event_positions=None if result.event_positions is None else result.event_positions[:, :count],
+    )
+
+
+trace_events.__wrapped__ = _trace_events  # the traced kernel: eqx.debug.get_num_traces counts its compilations
 
 
 def ray_arguments(origins: ArrayLike, directions: ArrayLike, wavelength_nm: ArrayLike) -> tuple[Array, Array, Array]:
