@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import enum
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -90,75 +91,101 @@ BEHIND_TOLERANCE_MM = 1e-4
 which may touch this one (cemented rims), and float32 positions carry about 1e-5 mm of rounding."""
 
 
-def intersect(origin, direction, vertex_z, curvature, conic, aspheric, kind, has_aspheres: bool):
+class Vector(NamedTuple):
+    """Three components of a point or direction, each an array of one value per ray (the tracer
+    keeps its rays as a structure of arrays)."""
+
+    x: Array
+    y: Array
+    z: Array
+
+
+def _keep(value: Array) -> Array:
+    return value
+
+
+def intersect(point: Vector, direction: Vector, vertex_z, curvature, conic, aspheric, kind, has_aspheres: bool, materialise=_keep):
     """First intersection ahead of each ray with the vertex sheet of a surface.
 
-    ``origin``, ``direction``: (N, 3); the surface's parameters are scalars or (N,) (a surface per
-    ray). Returns ``(point (N, 3), unit normal (N, 3) facing -z, hit (N,))``; ``hit`` is False for
-    a miss, a surface behind the ray (sequential order violated, as where two surfaces cross) or a
-    hit only on the far sheet. Aspheres (``has_aspheres``, static) refine the conic root by Newton.
+    ``point`` and ``direction`` are per-ray components; the surface's parameters are scalars or
+    one per ray. Returns ``(hit point, unit normal facing -z at the vertex, hit)``; ``hit`` is
+    False for a miss, a surface behind the ray (sequential order violated, as where two surfaces
+    cross) or a hit only on the far sheet. Aspheres (``has_aspheres``, static) refine the conic root
+    by Newton. ``materialise`` marks values used many times (the tracer uses it to keep XLA from
+    recomputing them in every consumer); it must return its argument's value.
     """
     wx, wy = meridian_weights(kind)
-    px, py, pz = origin[:, 0], origin[:, 1], origin[:, 2] - vertex_z
-    dx, dy, dz = direction[:, 0], direction[:, 1], direction[:, 2]
+    px, py, pz = point.x, point.y, point.z - vertex_z
+    dx, dy, dz = direction
     c, k1 = curvature, 1.0 + conic
-    a = c * (wx * dx * dx + wy * dy * dy) + k1 * c * dz * dz
-    b = c * (wx * px * dx + wy * py * dy) - dz + k1 * c * pz * dz
-    g = c * (wx * px * px + wy * py * py) - 2.0 * pz + k1 * c * pz * pz
-    disc = b * b - a * g
+    a = materialise(c * (wx * dx * dx + wy * dy * dy) + k1 * c * dz * dz)
+    b = materialise(c * (wx * px * dx + wy * py * dy) - dz + k1 * c * pz * dz)
+    g = materialise(c * (wx * px * px + wy * py * py) - 2.0 * pz + k1 * c * pz * pz)
     # Both roots of a t^2 + 2 b t + g = 0, computed without cancellation. Keep the first one ahead of
     # the ray (t >= 0) that lies on the vertex sheet of the quadric (k1 c z <= 1: the sheet through
     # the vertex, whose normal faces -z); a root behind the ray or on the far sheet is not a hit.
-    root = safe_sqrt(disc)
-    sign = jnp.where(b >= 0, 1.0, -1.0)
-    q = -(b + sign * root)
-    roots = jnp.stack([safe_divide(g, q), safe_divide(q, a)])
-    exists = jnp.stack([q != 0, a != 0]) & (disc >= 0)
-    z_roots = pz + roots * dz
-    usable = exists & (roots >= -BEHIND_TOLERANCE_MM) & (k1 * c * z_roots <= 1.0)
-    first = jnp.where(usable[0] & (~usable[1] | (roots[0] <= roots[1])), 0, 1)
-    t = jnp.where(first == 0, roots[0], roots[1])
-    hit = jnp.where(first == 0, usable[0], usable[1])
-    t = jnp.where(hit, t, 0.0)
-    x, y, z = px + t * dx, py + t * dy, pz + t * dz
+    disc = materialise(b * b - a * g)
+    root = materialise(safe_sqrt(disc))
+    q = materialise(-(b + jnp.where(b >= 0, root, -root)))
+    t0 = materialise(safe_divide(g, q))
+    t1 = materialise(safe_divide(q, a))
+    real = disc >= 0
+    usable0 = real & (q != 0) & (t0 >= -BEHIND_TOLERANCE_MM) & (k1 * c * (pz + t0 * dz) <= 1.0)
+    usable1 = real & (a != 0) & (t1 >= -BEHIND_TOLERANCE_MM) & (k1 * c * (pz + t1 * dz) <= 1.0)
+    take0 = usable0 & (~usable1 | (t0 <= t1))
+    hit = usable0 | usable1
+    t = materialise(jnp.where(hit, jnp.where(take0, t0, t1), 0.0))
+    x, y, z = materialise(px + t * dx), materialise(py + t * dy), materialise(pz + t * dz)
     if has_aspheres:
         for _ in range(4):  # Newton on f(t) = z(t) - sag(rho^2(t)), starting at the conic solution
             rho2 = wx * x * x + wy * y * y
             sag, slope = sag_and_slope(rho2, c, conic, aspheric)
             f = z - sag
             df = dz - slope * (wx * x * dx + wy * y * dy)
-            t = t - safe_divide(f, df)
-            x, y, z = px + t * dx, py + t * dy, pz + t * dz
+            t = materialise(t - safe_divide(f, df))
+            x, y, z = materialise(px + t * dx), materialise(py + t * dy), materialise(pz + t * dz)
         rho2 = wx * x * x + wy * y * y
         sag, slope = sag_and_slope(rho2, c, conic, aspheric)
         hit = hit & (jnp.abs(z - sag) < 1e-4) & (1.0 - k1 * c * c * rho2 >= 0)
-        normal = jnp.stack([wx * x * slope, wy * y * slope, -jnp.ones_like(z)], axis=-1)
+        nx, ny, nz = wx * x * slope, wy * y * slope, -jnp.ones_like(z)
     else:
         # gradient of the quadric c rho^2 - 2 z + (1 + k) c z^2, halved (exact on the surface)
-        normal = jnp.stack([wx * c * x, wy * c * y, k1 * c * z - 1.0], axis=-1)
-    normal = normal / jnp.linalg.norm(normal, axis=-1, keepdims=True)
-    point = jnp.stack([x, y, z + vertex_z], axis=-1)
-    return point, normal, hit
+        nx, ny, nz = wx * c * x, wy * c * y, k1 * c * z - 1.0
+    nx, ny, nz = materialise(nx), materialise(ny), materialise(nz)
+    scale = materialise(1.0 / jnp.sqrt(nx * nx + ny * ny + nz * nz))
+    normal = Vector(materialise(nx * scale), materialise(ny * scale), materialise(nz * scale))
+    return Vector(x, y, z + vertex_z), normal, hit
 
 
-def facing_normal(normal: Array, direction: Array) -> tuple[Array, Array]:
+def facing_normal(normal: Vector, direction: Vector, materialise=_keep) -> tuple[Vector, Array]:
     """The normal turned to face the incoming ray, and the cosine of incidence in [0, 1]."""
-    cos_in = -jnp.sum(normal * direction, axis=-1)
+    cos_in = -(normal.x * direction.x + normal.y * direction.y + normal.z * direction.z)
     facing = jnp.where(cos_in < 0, -1.0, 1.0)
-    return normal * facing[:, None], jnp.clip(cos_in * facing, 0.0, 1.0)
+    return Vector(normal.x * facing, normal.y * facing, normal.z * facing), materialise(jnp.clip(cos_in * facing, 0.0, 1.0))
 
 
-def refract(direction: Array, normal: Array, cos_in: Array, eta: Array) -> tuple[Array, Array]:
-    """Snell's law in vector form: the refracted direction (not normalised) for the index ratio
-    ``eta = n_before / n_after``, and where the ray is totally internally reflected instead."""
-    k = 1.0 - eta**2 * (1.0 - cos_in**2)
-    refracted = eta[:, None] * direction + (eta * cos_in - safe_sqrt(k))[:, None] * normal
-    return refracted, k < 0
+def refract_or_reflect(direction: Vector, normal: Vector, cos_in: Array, eta: Array, reflects, materialise=_keep) -> tuple[Vector, Array]:
+    """The unit direction after the surface: the mirror direction about the (facing) normal where
+    ``reflects``, else Snell's law in vector form for the index ratio ``eta = n_before / n_after``;
+    and where a refracted ray is totally internally reflected instead (its direction then is
+    meaningless)."""
+    k = materialise(1.0 - eta * eta * (1.0 - cos_in * cos_in))
+    along_normal = materialise(jnp.where(reflects, 2.0 * cos_in, eta * cos_in - safe_sqrt(k)))  # reflect: d + 2 cos n
+    along_ray = materialise(jnp.where(reflects, 1.0, eta))  # refract: eta d + (eta cos - sqrt(k)) n
+    ex, ey, ez = (materialise(along_ray * d + along_normal * n) for d, n in zip(direction, normal))
+    scale = materialise(1.0 / jnp.sqrt(ex * ex + ey * ey + ez * ez))
+    return Vector(materialise(ex * scale), materialise(ey * scale), materialise(ez * scale)), ~reflects & (k < 0)
 
 
-def reflect(direction: Array, normal: Array, cos_in: Array) -> Array:
+def refract(direction: Vector, normal: Vector, cos_in: Array, eta: Array) -> tuple[Vector, Array]:
+    """Snell's law in vector form: the unit refracted direction for ``eta = n_before / n_after``, and
+    where the ray is totally internally reflected instead."""
+    return refract_or_reflect(direction, normal, cos_in, eta, False)
+
+
+def reflect(direction: Vector, normal: Vector, cos_in: Array) -> Vector:
     """The mirror direction about the (facing) normal."""
-    return direction + 2.0 * cos_in[:, None] * normal
+    return refract_or_reflect(direction, normal, cos_in, jnp.ones_like(cos_in), True)[0]
 
 
 def inside_iris(x: Array, y: Array, radius: Array, blades: int, rotation: Array) -> Array:

@@ -71,11 +71,8 @@ def _cos_sinc(x):
     return c, s
 
 
-@jax.jit
-def coated_reflectance_sp(
-    n_incident, n_substrate, cos_incident, wavelength_nm, layer_indices, layer_thicknesses_nm
-):
-    """Return ``(R_s, R_p)`` of a coated interface; see the module docstring for conventions."""
+def _reflectance_sp(n_incident, n_substrate, cos_incident, wavelength_nm, layer_indices, layer_thicknesses_nm):
+    """``(R_s, R_p)``, unjitted (the public functions jit it; the tracer inlines it)."""
     args = (n_incident, n_substrate, cos_incident, wavelength_nm, layer_indices, layer_thicknesses_nm)
     dtype = jnp.result_type(float, *(jnp.asarray(a) for a in args))
     n0, ns, c0, lam, nl, tl = (jnp.asarray(a, dtype) for a in args)
@@ -104,13 +101,11 @@ def coated_reflectance_sp(
     # N_sub / D_sub is q_s / 1 (s) or n_s^2 / q_s (p).
     xr, xi = jnp.stack([one, u]), jnp.stack([zero, v])
     yr, yi = jnp.stack([u, ns**2]), jnp.stack([v, zero])
-
-    def apply_layer(v, layer):
-        (xr, xi, yr, yi), (c, a, b) = v, layer
-        return (c * xr - a * yi, c * xi + a * yr, c * yr - b * xi, c * yi + b * xr), None
-
-    layers = tuple(jnp.moveaxis(t, -1, 0) for t in (cos_d, a, b))  # layer axis first
-    (xr, xi, yr, yi), _ = jax.lax.scan(apply_layer, (xr, xi, yr, yi), layers, reverse=True)
+    # the layers from the substrate outwards, unrolled (the count is static and small), so that
+    # XLA fuses the whole stack into the tracer's loop
+    for j in reversed(range(n_layers)):
+        c, aj, bj = cos_d[..., j], a[..., j], b[..., j]
+        xr, xi, yr, yi = c * xr - aj * yi, c * xi + aj * yr, c * yr - bj * xi, c * yi + bj * xr
     # r = (eta_0 B - C) / (eta_0 B + C) with eta_0 = N_0 / D_0 (s: q_0 / 1, p: n_0^2 / q_0).
     n_0, d_0 = jnp.stack([q0, n0**2]), jnp.stack([one, q0])
     num2 = (n_0 * xr - d_0 * yr) ** 2 + (n_0 * xi - d_0 * yi) ** 2
@@ -118,6 +113,20 @@ def coated_reflectance_sp(
     ok = den2 > 0  # den2 == 0 only for 0/0: grazing incidence on an index-matched bare interface
     r = jnp.where(ok, num2 / jnp.where(ok, den2, 1.0), 0.0)
     return r[0], r[1]
+
+
+@jax.jit
+def coated_reflectance_sp(
+    n_incident, n_substrate, cos_incident, wavelength_nm, layer_indices, layer_thicknesses_nm
+):
+    """Return ``(R_s, R_p)`` of a coated interface; see the module docstring for conventions."""
+    return _reflectance_sp(n_incident, n_substrate, cos_incident, wavelength_nm, layer_indices, layer_thicknesses_nm)
+
+
+def unpolarised_reflectance(n_incident, n_substrate, cos_incident, wavelength_nm, layer_indices, layer_thicknesses_nm):
+    """:func:`coated_reflectance`, unjitted (for the tracer's loop)."""
+    r_s, r_p = _reflectance_sp(n_incident, n_substrate, cos_incident, wavelength_nm, layer_indices, layer_thicknesses_nm)
+    return 0.5 * (r_s + r_p)
 
 
 @jax.jit

@@ -15,17 +15,17 @@ values, and every square root and division is guarded so that values *and gradie
 from __future__ import annotations
 
 import enum
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from ._glass import sellmeier_index
 from ._lens import Lens
 from ._paths import EventAction, EventTable, GhostPath, event_table, ghost_paths, path_events, stop_pass_count
-from ._surface import facing_normal, inside_iris, intersect, reflect, refract, safe_divide
-from ._thin_film import coated_reflectance
+from ._surface import Vector, facing_normal, inside_iris, intersect, refract_or_reflect, safe_divide
+from ._thin_film import unpolarised_reflectance
 
 
 class LossReason(enum.IntEnum):
@@ -70,109 +70,209 @@ class TraceResult(eqx.Module):
 
 def media_indices(lens: Lens, wavelength_nm: Array) -> Array:
     """(N, M) refractive index of every medium (Sellmeier; air 1) for every ray's wavelength."""
-    n = sellmeier_index(lens.sellmeier_b[None, :, :], lens.sellmeier_c_um2[None, :, :], wavelength_nm[:, None])
-    return jnp.where(lens.medium_is_air[None, :], 1.0, n)
+    return medium_rows(lens, wavelength_nm).T
+
+
+def medium_rows(lens: Lens, wavelength_nm: Array) -> Array:
+    """(M, N) refractive index of every medium for every ray's wavelength: one row per medium.
+
+    Each distinct glass of the lens is evaluated once (air rows are 1), with the three Sellmeier
+    terms over one common denominator, ``n^2 = 1 + sum_i B_i l / (l - C_i)`` with ``l = lambda^2``,
+    so one division and one square root per glass and ray: the media are the tracer's costliest
+    per-ray set-up, and most lenses repeat a few glasses."""
+    lam2 = jnp.square(wavelength_nm * 1e-3)
+    media = (None,) + tuple(lens.media)
+    rows: list = [None] * len(media)
+    first: dict = {}
+    for m, glass in enumerate(media):
+        if glass is None:
+            continue
+        key = (tuple(glass.sellmeier_b), tuple(glass.sellmeier_c_um2))
+        if key in first:
+            rows[m] = rows[first[key]]
+            continue
+        first[key] = m
+        b, c = lens.sellmeier_b[m].astype(lam2.dtype), lens.sellmeier_c_um2[m].astype(lam2.dtype)
+        d0, d1, d2 = lam2 - c[0], lam2 - c[1], lam2 - c[2]
+        numerator = lam2 * (b[0] * d1 * d2 + b[1] * d0 * d2 + b[2] * d0 * d1)
+        rows[m] = jnp.sqrt(1.0 + numerator / (d0 * d1 * d2))
+    ones = jnp.ones_like(lam2)
+    return jnp.stack([ones if row is None else row for row in rows])
+
+
+CHUNK_RAYS = 16384
+"""Rays traced together: larger batches are traced chunk by chunk (``lax.map``), so that each
+event's arrays stay in the cache."""
+
+
+class _Rays(NamedTuple):
+    """The tracer's state, a structure of arrays (one entry per ray)."""
+
+    position: Vector
+    direction: Vector
+    valid: Array
+    throughput: Array
+    lost_at: Array
+    stop: tuple[Vector, ...]
+    stop_pass: Array
+
+
+def _runtime_one(wavelength_nm: Array) -> Array:
+    """1.0 as a value only known at run time (from the data): dividing by it makes XLA keep a value
+    in memory instead of recomputing its chain of cheap operations in every consumer, which on CPU
+    multiplied the tracer's work about 26-fold (measured; REFERENCE.md section 8)."""
+    w = jax.lax.stop_gradient(wavelength_nm[0])
+    w = jnp.where(w > 0, w, 1.0)
+    return w / w
 
 
 @eqx.debug.assert_max_traces(max_traces=None)  # counts compilations: tests catch retracing with get_num_traces
 def _trace_events(
-    lens: Lens, origins: Array, directions: Array, wavelength_nm: Array, events: EventTable, num_stop_passes: int, record_events: bool = False
+    lens: Lens, origins: Array, directions: Array, wavelength_nm: Array, events: EventTable, num_stop_passes: int,
+    record_events: bool = False, fresnel: bool = True, slot: Array | None = None,
 ) -> TraceResult:
-    """Trace rays along ``events``: columns of shape (E,) for one path shared by every ray, or
-    (N, E) for a path per ray (a renderer batch that mixes paths). ``num_stop_passes`` (static):
-    how many stop crossings to record."""
-    num_rays = origins.shape[0]
-    vertex_z = jnp.concatenate([jnp.zeros(1, lens.thickness_mm.dtype), jnp.cumsum(lens.thickness_mm[:-1])])
-    indices = media_indices(lens, wavelength_nm)
-    directions = directions / jnp.linalg.norm(directions, axis=-1, keepdims=True)
+    """Trace rays along ``events``: columns of shape (E,) for one path shared by every ray; (N, E)
+    for a path per ray; or, with ``slot`` (N,), (P, E) for P paths of which ray n follows path
+    ``slot[n]`` (a renderer batch that mixes paths). ``num_stop_passes`` (static): how many stop
+    crossings to record; ``fresnel`` (static): multiply the coated Fresnel factor of every event
+    into ``throughput`` (else the throughput is 1 for every valid ray).
+
+    One ``lax.scan`` over the events; events no ray of a chunk needs (a path's padding) are skipped
+    at run time (``lax.cond`` on a scalar), the rest masked per ray. Rays go in chunks of
+    :data:`CHUNK_RAYS`.
+    """
+    count = origins.shape[0]
     dtype = origins.dtype
+    per_ray = events.surface.ndim == 2
+    if slot is None and per_ray:  # a path per ray: each ray its own row
+        slot = jnp.arange(count)
+    vertex_z = jnp.concatenate([jnp.zeros(1, lens.thickness_mm.dtype), jnp.cumsum(lens.thickness_mm[:-1])]).astype(dtype)
+    surface_table = jnp.stack(
+        [vertex_z, lens.curvature_per_mm.astype(dtype), lens.conic.astype(dtype), lens.surface_kind.astype(dtype), (lens.semi_aperture_mm**2).astype(dtype)],
+        axis=-1,
+    )  # (S, 5): one gather per event fetches a surface's parameters for every ray
+    aspheric = lens.aspheric_coefficients.astype(dtype)
+    num_slots = max(num_stop_passes, 1)
 
-    per_ray = events.surface.ndim == 2  # (N, E): every ray follows its own path
+    def trace_chunk(origins, directions, wavelength, slot):
+        size = origins.shape[0]
+        one = _runtime_one(wavelength)
 
-    def column(table, surface):  # table[:, surface] for one surface or one per ray
-        return jnp.take_along_axis(table, surface[:, None], 1)[:, 0] if per_ray else table[:, surface]
+        def keep(value):  # a value used many times: computed once, kept in memory
+            return value / one
 
-    def apply_event(state, event):
-        position, direction, valid, throughput, lost_at, stop_positions, stop_pass = state
-        surface, travel, action = event.surface, event.travel, event.action
-        point, normal, hit = intersect(
-            position, direction, vertex_z[surface], lens.curvature_per_mm[surface], lens.conic[surface],
-            lens.aspheric_coefficients[surface], lens.surface_kind[surface], lens.has_aspheres,
+        by_medium = keep(medium_rows(lens, wavelength).astype(dtype))  # (M, n): a medium's indices for every ray are one row
+        indices = by_medium.T if per_ray else None  # (n, M), gathered per ray
+        norm = jnp.sqrt(jnp.sum(directions**2, axis=-1))
+        zeros = jnp.zeros(size, dtype)
+        rays = _Rays(
+            position=Vector(origins[:, 0], origins[:, 1], origins[:, 2]),
+            direction=Vector(*(directions[:, k] / norm for k in range(3))),
+            valid=jnp.ones(size, bool),
+            throughput=jnp.ones(size, dtype),
+            lost_at=jnp.full(size, LossReason.NOT_LOST, jnp.int32),
+            stop=tuple(Vector(zeros, zeros, zeros) for _ in range(num_slots)),
+            stop_pass=jnp.zeros(size, jnp.int32),
         )
-        is_stop = surface == lens.stop_index
-        inside_clear = point[:, 0] ** 2 + point[:, 1] ** 2 <= lens.semi_aperture_mm[surface] ** 2
-        inside_stop = inside_iris(point[:, 0], point[:, 1], lens.stop_radius_mm, lens.aperture_blades, lens.aperture_rotation_rad)
-        inside = jnp.where(is_stop, inside_clear & inside_stop, inside_clear)
 
-        forward = travel > 0
-        n_before = jnp.where(forward, column(indices, surface), column(indices, surface + 1))
-        n_after = jnp.where(forward, column(indices, surface + 1), column(indices, surface))
-        normal, cos_in = facing_normal(normal, direction)
-
-        reflects = action == EventAction.REFLECT
-        refracted, total_internal = refract(direction, normal, cos_in, n_before / n_after)
-        new_direction = jnp.where(reflects[..., None], reflect(direction, normal, cos_in), refracted)
-        new_direction = new_direction / jnp.linalg.norm(new_direction, axis=-1, keepdims=True)
-        total_internal = (~reflects) & total_internal
-
-        layers_n = lens.coating_indices[surface]
-        layers_d = lens.coating_thicknesses_nm[surface]
-        layers_n = jnp.where(forward[..., None], layers_n, layers_n[..., ::-1])
-        layers_d = jnp.where(forward[..., None], layers_d, layers_d[..., ::-1])
-        reflectance = coated_reflectance(n_before, n_after, cos_in, wavelength_nm, layers_n, layers_d)
-        factor = jnp.where(reflects, reflectance, 1.0 - reflectance)
-
-        ok = hit & inside & ~total_internal
-        newly_lost = valid & ~ok
-        update = valid & ok
-        position = jnp.where(update[:, None], point, position)
-        direction = jnp.where(update[:, None], new_direction, direction)
-        throughput = jnp.where(update, throughput * factor, throughput)
-        lost_at = jnp.where(newly_lost, surface, lost_at)
-        valid = valid & ok
-        record = jnp.broadcast_to(is_stop, stop_pass.shape)
-        slot = jax.nn.one_hot(stop_pass, stop_positions.shape[1], dtype=dtype)  # (N, P)
-        stop_positions = jnp.where(record[:, None, None], stop_positions + slot[:, :, None] * point[:, None, :], stop_positions)
-        stop_pass = stop_pass + jnp.where(record, 1, 0)
-        return position, direction, valid, throughput, lost_at, stop_positions, stop_pass
-
-    def step(state, event):
-        if per_ray:  # each ray skips its own padded events
-            new = apply_event(state, event)
+        def apply_event(rays: _Rays, event) -> _Rays:
+            surface, forward, reflects = event.surface, event.travel > 0, event.action == EventAction.REFLECT
             active = event.active == 1
-            state = jax.tree.map(lambda n, o: jnp.where(active.reshape(active.shape + (1,) * (n.ndim - 1)), n, o), new, state)
-        else:  # padded (inactive) events are skipped at run time; cond stays reverse-differentiable
-            state = jax.lax.cond(event.active == 1, apply_event, lambda state, _: state, state, event)
-        return state, (state[0] if record_events else None)
+            vz, curvature, conic, kind, semi2 = (surface_table[surface, k] for k in range(5))
+            point, normal, hit = intersect(
+                rays.position, rays.direction, vz, curvature, conic, aspheric[surface], kind, lens.has_aspheres, keep,
+            )
+            r2 = keep(point.x**2 + point.y**2)
+            is_stop = surface == lens.stop_index
+            iris = inside_iris(point.x, point.y, lens.stop_radius_mm.astype(dtype), lens.aperture_blades, lens.aperture_rotation_rad.astype(dtype))
+            inside = (r2 <= semi2) & (~is_stop | iris)
+            medium_before = jnp.where(forward, surface, surface + 1)
+            medium_after = jnp.where(forward, surface + 1, surface)
+            if per_ray:
+                n_before = jnp.take_along_axis(indices, medium_before[:, None], 1)[:, 0]
+                n_after = jnp.take_along_axis(indices, medium_after[:, None], 1)[:, 0]
+            else:
+                n_before, n_after = by_medium[medium_before], by_medium[medium_after]
+            normal, cos_in = facing_normal(normal, rays.direction, keep)
+            direction, total_internal = refract_or_reflect(rays.direction, normal, cos_in, keep(n_before / n_after), reflects, keep)
+            ok = hit & inside & ~total_internal
+            update = rays.valid & ok & active
+            throughput = rays.throughput
+            if fresnel:
+                layers_n = lens.coating_indices[surface].astype(dtype)
+                layers_d = lens.coating_thicknesses_nm[surface].astype(dtype)
+                layers_n = jnp.where(forward[..., None], layers_n, layers_n[..., ::-1])
+                layers_d = jnp.where(forward[..., None], layers_d, layers_d[..., ::-1])
+                reflectance = unpolarised_reflectance(n_before, n_after, cos_in, wavelength, layers_n, layers_d)
+                throughput = jnp.where(update, throughput * jnp.where(reflects, reflectance, 1.0 - reflectance), throughput)
+            record = is_stop & active
+            stop = tuple(
+                Vector(*(jnp.where(record & (rays.stop_pass == slot), new, old) for new, old in zip(point, recorded)))
+                for slot, recorded in enumerate(rays.stop)
+            )
+            return _Rays(
+                position=Vector(*(keep(jnp.where(update, new, old)) for new, old in zip(point, rays.position))),
+                direction=Vector(*(keep(jnp.where(update, new, old)) for new, old in zip(direction, rays.direction))),
+                valid=rays.valid & (ok | ~active),
+                throughput=throughput,
+                lost_at=jnp.where(rays.valid & ~ok & active, surface, rays.lost_at),
+                stop=stop,
+                stop_pass=rays.stop_pass + jnp.where(record, 1, 0),
+            )
 
-    state = (
-        origins,
-        directions,
-        jnp.ones(num_rays, bool),
-        jnp.ones(num_rays, dtype),
-        jnp.full(num_rays, LossReason.NOT_LOST, jnp.int32),
-        jnp.zeros((num_rays, max(num_stop_passes, 1), 3), dtype),
-        jnp.zeros(num_rays, jnp.int32),
-    )
-    scanned = jax.tree.map(lambda column: jnp.swapaxes(column, 0, 1), events) if per_ray else events
-    (position, direction, valid, throughput, lost_at, stop_positions, _), history = jax.lax.scan(step, state, scanned)
+        def step(rays, event):
+            # padding is skipped at run time: a path shared by every ray skips its own; with a path
+            # per ray, an event no ray of the chunk needs is skipped (sort rays by path length to
+            # make that common: ExactPathTracer does), and the others mask it ray by ray
+            needed = jnp.any(event.active == 1) if per_ray else event.active == 1
+            rays = jax.lax.cond(needed, apply_event, lambda rays, _: rays, rays, event)
+            return rays, (jnp.stack(rays.position, axis=-1) if record_events else None)
 
-    # propagate to the sensor plane
-    dz = direction[:, 2]
-    reaches = dz > 0
-    t = safe_divide(lens.sensor_z_mm - position[:, 2], dz)
-    sensor_position = position + t[:, None] * direction
-    sensor_position = sensor_position.at[:, 2].set(jnp.broadcast_to(lens.sensor_z_mm, (num_rays,)))
-    lost_at = jnp.where(valid & ~reaches, lens.num_surfaces, lost_at)
-    valid = valid & reaches
+        if per_ray:  # the scan reads each event's row of the paths' table; each ray takes its path's entry
+            scanned = jax.tree.map(lambda column: jnp.swapaxes(column, 0, 1), events)
+            rows = lambda row: jax.tree.map(lambda column: column[slot], row)  # noqa: E731
+        else:
+            scanned, rows = events, lambda row: row
+        rays, history = jax.lax.scan(lambda rays, row: step(rays, rows(row)), rays, scanned)
+
+        # propagate to the sensor plane
+        sensor_z = lens.sensor_z_mm.astype(dtype)
+        position, direction = rays.position, rays.direction
+        reaches = direction.z > 0
+        t = safe_divide(sensor_z - position.z, direction.z)
+        valid = rays.valid & reaches
+        at_sensor = jnp.stack([position.x + t * direction.x, position.y + t * direction.y, jnp.broadcast_to(sensor_z, (size,))], axis=-1)
+        positions = jnp.where(valid[:, None], at_sensor, jnp.stack(position, axis=-1))
+        stops = jnp.stack([jnp.stack(stop, axis=-1) for stop in rays.stop], axis=1)[:, :num_stop_passes]
+        return (
+            positions, jnp.stack(direction, axis=-1), valid, jnp.where(valid, rays.throughput, 0.0),
+            jnp.where(rays.valid & ~reaches, lens.num_surfaces, rays.lost_at), stops, history,
+        )
+
+    if count <= CHUNK_RAYS:
+        out = trace_chunk(origins, directions, wavelength_nm, slot)
+    else:
+        blocks = -(-count // CHUNK_RAYS)
+        pad = blocks * CHUNK_RAYS - count
+
+        def in_blocks(x):  # pad with copies of the last ray, then (blocks, CHUNK_RAYS, ...)
+            x = jnp.concatenate([x, jnp.broadcast_to(x[-1:], (pad,) + x.shape[1:])]) if pad else x
+            return x.reshape((blocks, CHUNK_RAYS) + x.shape[1:])
+
+        chunks = (in_blocks(origins), in_blocks(directions), in_blocks(wavelength_nm))
+        if per_ray:
+            out = jax.lax.map(lambda args: trace_chunk(*args), chunks + (in_blocks(slot),))
+        else:
+            out = jax.lax.map(lambda args: trace_chunk(*args, None), chunks)
+        *fields, history = out
+        fields = [x.reshape((-1,) + x.shape[2:])[:count] for x in fields]
+        if record_events:  # (blocks, E, CHUNK, 3) -> (E, N, 3)
+            history = jnp.swapaxes(history, 0, 1).reshape((history.shape[1], -1, 3))[:, :count]
+        out = (*fields, history)
+    positions, directions_out, valid, throughput, lost_at, stops, history = out
     return TraceResult(
-        positions=jnp.where(valid[:, None], sensor_position, position),
-        directions=direction,
-        valid=valid,
-        throughput=jnp.where(valid, throughput, 0.0),
-        lost_at_surface=lost_at,
-        stop_positions=stop_positions[:, :num_stop_passes] if num_stop_passes else stop_positions[:, :0],
-        event_positions=history,
+        positions=positions, directions=directions_out, valid=valid, throughput=throughput, lost_at_surface=lost_at,
+        stop_positions=stops, event_positions=history,
     )
 
 
@@ -201,6 +301,7 @@ def trace(
     path: GhostPath | None = None,
     *,
     record_events: bool = False,
+    fresnel: bool = True,
 ) -> TraceResult:
     """Trace rays exactly through ``lens`` along ``path`` to the sensor plane.
 
@@ -213,6 +314,8 @@ def trace(
         path: ``None`` for the primary (image-forming) path, or a ghost path ``(j, i)`` with
             ``j > i`` interface indices: reflect at interface j, then at interface i.
         record_events: also return every intermediate surface hit (``event_positions``).
+        fresnel: compute the coated Fresnel throughput (default); False skips it (the throughput
+            is then 1 for every valid ray), for callers that only need where rays go.
 
     Returns:
         A :class:`TraceResult` with positions, directions, a validity mask, Fresnel throughput,
@@ -224,7 +327,7 @@ def trace(
     origins, directions, wavelength = ray_arguments(origins, directions, wavelength_nm)
     events = path_events(lens, path)
     return trace_events(
-        lens, origins, directions, wavelength, EventTable.from_array(events), stop_pass_count(events, lens.stop_index), record_events
+        lens, origins, directions, wavelength, EventTable.from_array(events), stop_pass_count(events, lens.stop_index), record_events, fresnel
     )
 
 

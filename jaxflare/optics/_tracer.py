@@ -13,11 +13,12 @@ from collections.abc import Sequence
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Int
 
 from ._lens import Lens
-from ._paths import EventTable, GhostPath, check_ghost_path, path_events, stop_pass_count
+from ._paths import EventTable, GhostPath, active_event_count, check_ghost_path, path_events, stop_pass_count
 from ._trace import TraceResult, ray_arguments, trace_events
 
 
@@ -53,15 +54,23 @@ class ExactPathTracer(AbstractPathTracer):
     """Columns of shape (P, E): one row per path."""
     num_stop_passes: int = eqx.field(static=True, default=1)
     """Stop crossings recorded in ``stop_positions`` (at most the paths' own count)."""
+    fresnel: bool = eqx.field(static=True, default=True)
+    """Multiply the coated Fresnel factor of every event into the throughput (False: skip it, the
+    throughput is 1 for every valid ray; the renderer's Schlick model needs no more)."""
 
     @classmethod
-    def for_paths(cls, lens: Lens, paths: Sequence[GhostPath | None], num_stop_passes: int | None = None) -> ExactPathTracer:
+    def for_paths(
+        cls, lens: Lens, paths: Sequence[GhostPath | None], num_stop_passes: int | None = None, *, fresnel: bool = True,
+    ) -> ExactPathTracer:
         """A tracer for ``paths`` (None is the primary path) of ``lens``. ``num_stop_passes``
-        defaults to the fewest stop crossings of any of them (so a primary path records its one)."""
-        tables = [path_events(lens, check_ghost_path(lens, path)) for path in paths]
+        defaults to the fewest stop crossings of any of them (so a primary path records its one).
+        The event tables are cut after the longest path's last event: rays of several paths in one
+        batch each skip their own padding by a mask, so padding no path needs is not traced."""
+        tables = np.stack([path_events(lens, check_ghost_path(lens, path)) for path in paths])
         if num_stop_passes is None:
             num_stop_passes = min(stop_pass_count(table, lens.stop_index) for table in tables)
-        return cls(lens, EventTable.from_array(np.stack(tables)), num_stop_passes)
+        longest = max(active_event_count(table) for table in tables)
+        return cls(lens, EventTable.from_array(tables[:, :longest]), num_stop_passes, fresnel)
 
     @property
     def num_paths(self) -> int:
@@ -70,7 +79,16 @@ class ExactPathTracer(AbstractPathTracer):
     def trace(self, origins: Array, directions: Array, wavelength_nm: Array, slot: Int[Array, " N"] | None = None) -> TraceResult:
         if slot is None:
             events = jax.tree.map(lambda column: column[0], self.events)
-        else:  # a path per ray (rays of several paths mixed in one batch)
-            events = jax.tree.map(lambda column: column[slot], self.events)
-        return trace_events(self.lens, origins, directions, wavelength_nm, events, self.num_stop_passes)
+            return trace_events(self.lens, origins, directions, wavelength_nm, events, self.num_stop_passes, False, self.fresnel)
+        # A path per ray (rays of several paths mixed in one batch): the rays are traced in order of
+        # their path's length, so that the tracer's chunks of rays skip the events none of their
+        # rays needs, then put back in their own order.
+        length = jnp.sum(self.events.active, axis=1)
+        order = jnp.argsort(length[slot], stable=True)
+        traced = trace_events(
+            self.lens, origins[order], directions[order], wavelength_nm[order], self.events, self.num_stop_passes, False, self.fresnel,
+            slot[order],
+        )
+        back = jnp.zeros_like(order).at[order].set(jnp.arange(order.shape[0], dtype=order.dtype))
+        return jax.tree.map(lambda x: x[back], traced)
 

@@ -224,14 +224,18 @@ def build_path_systems(lens, wide_open_lens, paths, quality: Quality, pitch_mm: 
     return systems, reports
 
 
-def exact_path_sets(lens: Lens, paths, exact_index: Sequence[int], lights: LightArrays, rays_per_path: int) -> list[AdaptivePathSet]:
+def exact_path_sets(
+    lens: Lens, paths, exact_index: Sequence[int], lights: LightArrays, rays_per_path: int, fresnel: bool,
+) -> list[AdaptivePathSet]:
     """The exactly traced paths as adaptive sets: the flares in one, the core (primary path) in
-    its own, so the core's brightness does not take the flares' samples."""
+    its own, so the core's brightness does not take the flares' samples. ``fresnel``: trace the
+    coated Fresnel factor of every event (the exact Fresnel model; the Schlick model uses the
+    paths' on-axis factors instead)."""
     sets = []
     for members in ([k for k in exact_index if paths[k] is not None], [k for k in exact_index if paths[k] is None]):
         if not members:
             continue
-        tracer = ExactPathTracer(lens, EventTable.from_array(np.stack([path_events(lens, paths[k]) for k in members])), 1)
+        tracer = ExactPathTracer.for_paths(lens, [paths[k] for k in members], 1, fresnel=fresnel)
         table = uniform_table(lights.kind.shape[0], len(members), light_probability=np.asarray(lights.selection_probability))
         sets.append(AdaptivePathSet(jnp.asarray(members, jnp.int32), tracer, table, rays_per_path * len(members), stream=1000 + len(sets)))
     return sets
@@ -404,7 +408,7 @@ def plan_render(
     # and, for polynomial paths, how many of the scene's samples each system trusts
     pilot_capacity = [None] * num_paths if settings.method == "exact" else [0] * num_paths
     exact_index = [k for k in range(num_paths) if pilot_capacity[k] is None]
-    sets = exact_path_sets(lens, paths_all, exact_index, lights, rays_per_path) + polynomial_path_sets(systems, pilot_capacity, rays_per_path)
+    sets = exact_path_sets(lens, paths_all, exact_index, lights, rays_per_path, fresnel_exact) + polynomial_path_sets(systems, pilot_capacity, rays_per_path)
     setup = make_setup(sets, np.zeros(num_paths), np.ones(num_paths, bool))
     step = render_step_function()
     samples_per_batch = rays_per_path * num_paths
@@ -430,7 +434,7 @@ def plan_render(
     # the per-path budget stays the same: culled paths take their samples with them
     batches = max(1, math.ceil(batches * culling.enabled.sum() / num_paths))
     exact_index = [k for k in range(num_paths) if fallback_capacity[k] is None]
-    adaptive = exact_path_sets(lens, paths_all, exact_index, lights, rays_per_path)
+    adaptive = exact_path_sets(lens, paths_all, exact_index, lights, rays_per_path, fresnel_exact)
     pilot_tables = {}
     if settings.method == "exact":  # the pilot's table energies belong to the same sets
         pilot_tables = {k: np.asarray(e, np.float64) for k, e in enumerate(pilot.table_energy)}
