@@ -91,12 +91,12 @@ def _demo(out_dir: str, samples: int | None = None) -> int:
     return _render(demo_scene_path(), os.path.join(out_dir, "demo.exr"), None, 0, True, samples, None)
 
 
-def _render(scene_path: str, output: str, quality, seed: int, png: bool, samples, method) -> int:
+def _render(scene_path: str, output: str, quality, seed: int, png: bool, samples, method, estimator=None) -> int:
     from .rendering import render
 
     if not output.lower().endswith(".exr"):
         raise ValueError(f"-o/--output must end in .exr, got {output!r}")
-    result = render(scene_path, quality=quality, seed=seed, samples=samples, method=method, progress=True)
+    result = render(scene_path, quality=quality, seed=seed, samples=samples, method=method, progress=True, estimator=estimator)
     exr = result.write_exr(output)
     stats = result.statistics
     print(f"wrote {os.path.abspath(exr)}")
@@ -144,6 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--png", action="store_true", help="also write a tone-mapped PNG preview beside the EXR")
     render.add_argument("--samples", type=int, default=None, help="total Monte Carlo samples (default: the quality's)")
     render.add_argument("--method", choices=["auto", "polynomial", "exact"], default=None, help="path evaluation (default: the scene's)")
+    render.add_argument("--estimator", choices=["monte-carlo", "grid"], default=None, help="monte-carlo or the deterministic grid (default: the scene's)")
 
     fit = commands.add_parser("fit", help="fit coating colours, dirt and light gains to a plate (package fitting)")
     fit.add_argument("plate", help="plate image: EXR (any layer), 16-bit PNG or TIFF, linear")
@@ -189,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "fit":
             return _fit(args)
         if args.command == "render":
-            return _render(args.scene, args.output, args.quality, args.seed, args.png, args.samples, args.method)
+            return _render(args.scene, args.output, args.quality, args.seed, args.png, args.samples, args.method, args.estimator)
         if args.lens_command == "list":
             from .io import bundled_lens_names
 

@@ -52,7 +52,7 @@ from ._grid_splat import (
     chunk_count,
     empty_grid_accumulators,
 )
-from ._grid_trace import TRACE_CHUNK, TRACE_GRID
+from ._grid_trace import TRACE_BLOCK, TRACE_CHUNK, TRACE_GRID
 from ._lights import light_rgb
 from ._records import front_cosine, front_vertex_plane_xy
 from ._sampling import sample_connections
@@ -86,6 +86,12 @@ class GridQuality:
     at its centre (its lateral colour shift x the irradiance gradient)."""
     max_side: int
     """Most sub-samples per cell side."""
+    interleave: bool = True
+    """Shift each wavelength sub-node's sub-sample lattice by its own Kronecker point, so that each
+    can be up to twice sparser (fewer sub-samples); False centres every lattice in its cells (the
+    image of a symmetric scene is then symmetric to float rounding, at up to 4 times the cost)."""
+    edge_side: int = 8
+    """Fewest sub-samples per side of a piece a clipping edge may cross (see :func:`cell_pieces`)."""
     pilot_cells: int = 16
     pilot_level: int = 16
 
@@ -129,6 +135,7 @@ class GridJob:
     max_side: int = 24
     spacing_px: float = 0.7
     min_subsamples: int = 0
+    interleave: bool = True
     row0: int = 0
 
     @property
@@ -152,28 +159,28 @@ def traced_wavelengths(count: int, band: tuple[float, float]) -> np.ndarray:
 # --------------------------------------------------------------------------- tracing
 
 
-def _vertex_rays(setup, light, front_unit, node, light_unit, wavelength):
+def _vertex_rays(lights, front, spectral, lens, hood, schlick, light, front_unit, node, light_unit, wavelength):
     """The rays of vertices: from the point ``light_unit`` of each light to the entrance point
     ``front_unit`` of the node's entrance disc, and the entrance columns of the node's ray (its
-    flux factor, front-plane and hood-plane crossings)."""
-    lights, front = setup.lights, setup.front
+    flux factor, front-plane and hood-plane crossings). Takes only what it reads of the render
+    set-up, so the pilot and the main pass share one compilation."""
     count = light.shape[0]
     key = jax.random.PRNGKey(0)
-    base = sample_connections(lights, front, setup.spectral, key, count, 1, light=light, front_unit=front_unit, light_unit=node)
-    moved = sample_connections(lights, front, setup.spectral, key, count, 1, light=light, front_unit=front_unit, light_unit=light_unit)
+    base = sample_connections(lights, front, spectral, key, count, 1, light=light, front_unit=front_unit, light_unit=node)
+    moved = sample_connections(lights, front, spectral, key, count, 1, light=light, front_unit=front_unit, light_unit=light_unit)
     finite = lights.kind[light] != LightKind.DIRECTIONAL
     towards = base.origins - moved.light_point_mm
     towards = towards / jnp.linalg.norm(towards, axis=-1, keepdims=True)
     directions = jnp.where(finite[:, None], towards, moved.directions)
     flux = base.flux
     xy = front_vertex_plane_xy(base.origins, base.directions)
-    if setup.schlick:
-        flux = flux * (1.0 - (1.0 - front_cosine(setup.lens, xy, base.directions)) ** 5)
-    if setup.effects.hood is not None:
-        hood = jnp.clip(hood_crossing(setup.effects.hood, base.origins, base.directions), -1e6, 1e6)
+    if schlick:
+        flux = flux * (1.0 - (1.0 - front_cosine(lens, xy, base.directions)) ** 5)
+    if hood is not None:
+        crossing = jnp.clip(hood_crossing(hood, base.origins, base.directions), -1e6, 1e6)
     else:
-        hood = jnp.zeros_like(xy)
-    entrance = jnp.concatenate([flux[:, None], xy, hood], axis=-1)
+        crossing = jnp.zeros_like(xy)
+    entrance = jnp.concatenate([flux[:, None], xy, crossing], axis=-1)
     return base.origins, directions, moved.light_point_mm, wavelength.astype(base.origins.dtype), entrance
 
 
@@ -214,33 +221,45 @@ def trace_jobs(setup, lens, jobs: list[GridJob], events: list[np.ndarray], wavel
         chunk_paths += [job.path] * (padded // TRACE_CHUNK)
         row += padded
     total = row
-    bucket = _bucket(total // TRACE_CHUNK) * TRACE_CHUNK  # fewer distinct shapes, fewer compilations
-    if bucket > total:
-        pad = bucket - total
+    block_rays = TRACE_BLOCK * TRACE_CHUNK
+    padded_total = -(-total // block_rays) * block_rays  # whole blocks: one compiled shape for every render
+    if padded_total > total:
+        pad = padded_total - total
         pieces["light"].append(np.zeros(pad, np.int32))
         pieces["unit"].append(np.zeros((pad, 2)))
         pieces["node"].append(np.zeros((pad, 2)))
         pieces["light_unit"].append(np.zeros((pad, 2)))
         pieces["wavelength"].append(np.full(pad, wavelengths[0]))
-        chunk_paths += [jobs[0].path] * ((bucket - total) // TRACE_CHUNK)
+        chunk_paths += [jobs[0].path] * ((padded_total - total) // TRACE_CHUNK)
     arrays = {k: np.concatenate(v) for k, v in pieces.items()}
     f32 = jnp.float32
-    origins, directions, light_points, wavelength, entrance = VERTEX_RAYS(
-        setup, jnp.asarray(arrays["light"]), jnp.asarray(arrays["unit"], f32),
-        jnp.asarray(arrays["node"], f32), jnp.asarray(arrays["light_unit"], f32), jnp.asarray(arrays["wavelength"], f32),
-    )
-    visible = jnp.ones(origins.shape[0], bool)
     effects = setup.effects
-    if effects.occluders is not None:
-        to_world = effects.camera_to_world
-        start = effects.camera_position_m + (origins / 1000.0) @ to_world.T
-        light_end = effects.camera_position_m + (light_points / 1000.0) @ to_world.T
-        far_end = start - 1e6 * directions @ to_world.T
-        directional = setup.lights.kind[jnp.asarray(arrays["light"])] == LightKind.DIRECTIONAL
-        visible = segment_visibility(effects.occluders, start, jnp.where(directional[:, None], far_end, light_end))
-    table = EventTable.from_array(np.stack([events[k] for k in chunk_paths]))
-    rows = TRACE_GRID(lens, origins, directions, wavelength, visible, entrance, table)
+    event_rows = np.stack([events[k] for k in chunk_paths])
+    blocks = []
+    for start in range(0, padded_total, block_rays):
+        part = slice(start, start + block_rays)
+        light = jnp.asarray(arrays["light"][part])
+        origins, directions, light_points, wavelength, entrance = VERTEX_RAYS(
+            setup.lights, setup.front, setup.spectral, setup.lens, effects.hood, setup.schlick, light, jnp.asarray(arrays["unit"][part], f32), jnp.asarray(arrays["node"][part], f32),
+            jnp.asarray(arrays["light_unit"][part], f32), jnp.asarray(arrays["wavelength"][part], f32),
+        )
+        visible = jnp.ones(origins.shape[0], bool)
+        if effects.occluders is not None:
+            to_world = effects.camera_to_world
+            start_m = effects.camera_position_m + (origins / 1000.0) @ to_world.T
+            light_end = effects.camera_position_m + (light_points / 1000.0) @ to_world.T
+            far_end = start_m - 1e6 * directions @ to_world.T
+            directional = setup.lights.kind[light] == LightKind.DIRECTIONAL
+            visible = segment_visibility(effects.occluders, start_m, jnp.where(directional[:, None], far_end, light_end))
+        chunk0 = start // TRACE_CHUNK
+        table = EventTable.from_array(event_rows[chunk0 : chunk0 + TRACE_BLOCK])
+        blocks.append(TRACE_GRID(lens, origins, directions, wavelength, visible, entrance, table))
+    rows = blocks[0] if len(blocks) == 1 else jnp.concatenate(blocks)
     return rows, np.asarray(rows, np.float64)
+
+
+MIN_RECORDS, MIN_JOBS, MIN_CHUNKS = 2**14, 16, 16
+"""Smallest table sizes: small renders (tests, thumbnails) share one compiled splat kernel."""
 
 
 def _bucket(count: int) -> int:
@@ -310,7 +329,7 @@ def record_table(rows: jax.Array, records: dict) -> tuple[RecordTable, int, np.n
     windows), the number of sub-samples and the record each chunk of sub-samples starts in."""
     count = records["count"]
     total = int(count.sum())
-    size = _bucket(len(count)) + SUBSAMPLE_CHUNK
+    size = _bucket(max(len(count), MIN_RECORDS)) + SUBSAMPLE_CHUNK
     pad = size - len(count)
 
     def padded(a, value=0):
@@ -338,7 +357,7 @@ def job_table(setup, jobs: list[GridJob], path_fresnel: jax.Array, band: tuple[f
     """The device job table: each job's sub-node colours are the light's RGB x the path's on-axis
     coated Fresnel factor (Schlick model; the exact model's throughput is per vertex) averaged over
     the sub-node's stratum of :data:`BAND_POINTS` wavelengths, for every sub-node choice."""
-    size = _bucket(len(jobs))
+    size = _bucket(max(len(jobs), MIN_JOBS))
     jobs_padded = jobs + [jobs[0]] * (size - len(jobs))
     low, high = band
     fine = low + (np.arange(BAND_POINTS) + 0.5) * (high - low) / BAND_POINTS
@@ -363,6 +382,7 @@ def job_table(setup, jobs: list[GridJob], path_fresnel: jax.Array, band: tuple[f
         stratum=jnp.asarray([job.stratum for job in jobs_padded], f32),
         step=jnp.asarray([job.step for job in jobs_padded], f32),
         weight=jnp.asarray([job.weight for job in jobs_padded], f32),
+        interleave=jnp.asarray([int(job.interleave) for job in jobs_padded], jnp.int32),
         colour=colour,
     )
 
@@ -383,18 +403,54 @@ def _job_colours(setup, path_fresnel, light, path, fine, averaging):
     return jnp.einsum("mp,jpc->jmc", averaging, rgb)
 
 
-def splat_jobs(setup, jobs: list[GridJob], rows: jax.Array, pieces, traced_nodes, path_fresnel, band, num_layers: int, num_slots: int):
-    """Records and sub-samples of ``jobs`` (``pieces``: :func:`cell_pieces` of each): the
-    accumulated packed images and per-slot statistics."""
-    width, height = setup.resolution
-    acc = empty_grid_accumulators(num_layers, num_slots, width, height)
+@dataclasses.dataclass
+class PreparedSplat:
+    """Everything the splat kernel reads, built on the host from traced vertices: the device
+    record and job tables, the sub-sample count and the chunk starts; ``slot_samples`` counts the
+    sub-samples of every statistics slot (host)."""
+
+    table: RecordTable
+    jobs: JobTable
+    total: int
+    first: np.ndarray
+    chunks: int
+    records: int
+    slot_samples: np.ndarray
+
+
+def prepare_splat(setup, jobs: list[GridJob], rows: jax.Array, pieces, traced_nodes, path_fresnel, band, num_slots: int) -> PreparedSplat | None:
+    """The records of ``jobs`` (``pieces``: :func:`cell_pieces` of each) as device tables (None
+    when no cell of any job may carry light)."""
     records = job_records(jobs, pieces, traced_nodes, band)
     if not records:
-        return acc, 0, 0
+        return None
     table, total, first = record_table(rows, records)
     job_arrays = job_table(setup, jobs, path_fresnel, band)
     chunks = len(first)
-    first = np.concatenate([first, np.zeros(_bucket(chunks) - chunks, first.dtype)])
-    acc = SPLAT_SUBSAMPLES(setup, job_arrays, table, acc, jnp.asarray(total, jnp.int32), jnp.asarray(first, jnp.int32), jnp.asarray(chunks, jnp.int32))
-    return acc, total, len(records["count"])
+    first = np.concatenate([first, np.zeros(_bucket(max(chunks, MIN_CHUNKS)) - chunks, first.dtype)])
+    slots = np.asarray([job.slot for job in jobs])[records["job"]]
+    slot_samples = np.bincount(slots, weights=records["count"], minlength=num_slots)
+    return PreparedSplat(table=table, jobs=job_arrays, total=total, first=first, chunks=chunks, records=len(records["count"]), slot_samples=slot_samples)
 
+
+def splat_prepared(setup, prepared: PreparedSplat | None, num_layers: int, num_slots: int):
+    """The accumulated packed images and per-slot statistics of prepared records. Differentiable
+    in what ``setup`` holds (tints, dirt, light gains): the record tables are fixed."""
+    width, height = setup.resolution
+    acc = empty_grid_accumulators(num_layers, num_slots, width, height)
+    if prepared is None:
+        return acc
+    return SPLAT_SUBSAMPLES(
+        setup, prepared.jobs, prepared.table, acc, jnp.asarray(prepared.total, jnp.int32), jnp.asarray(prepared.first, jnp.int32),
+        jnp.asarray(prepared.chunks, jnp.int32),
+    )
+
+
+def splat_jobs(setup, jobs: list[GridJob], rows: jax.Array, pieces, traced_nodes, path_fresnel, band, num_layers: int, num_slots: int):
+    """Records and sub-samples of ``jobs`` (``pieces``: :func:`cell_pieces` of each): the
+    accumulated packed images and per-slot statistics, the sub-sample and record counts."""
+    prepared = prepare_splat(setup, jobs, rows, pieces, traced_nodes, path_fresnel, band, num_slots)
+    acc = splat_prepared(setup, prepared, num_layers, num_slots)
+    if prepared is None:
+        return acc, 0, 0
+    return acc, prepared.total, prepared.records

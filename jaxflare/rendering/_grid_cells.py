@@ -129,7 +129,7 @@ def summarise_cells(job, rows: np.ndarray, traced: int, lens, pitch_mm: float, w
     moving = float(motion_px[passing].max()) if passing.any() else 0.0
 
     middle = sensor_px[0, traced // 2]
-    area = 0.5 * np.abs(np.cross(middle[1:, 1:] - middle[:-1, :-1], middle[:-1, 1:] - middle[1:, :-1]))
+    area = 0.5 * np.abs(_cross(middle[1:, 1:] - middle[:-1, :-1], middle[:-1, 1:] - middle[1:, :-1]))
     log_area = np.log(np.maximum(area, 1e-12))
     change = np.zeros_like(log_area)
     step_u, step_v = np.abs(np.diff(log_area, axis=1)), np.abs(np.diff(log_area, axis=0))
@@ -138,6 +138,11 @@ def summarise_cells(job, rows: np.ndarray, traced: int, lens, pitch_mm: float, w
     change[1:] = np.maximum(change[1:], step_v)
     change[:-1] = np.maximum(change[:-1], step_v)
     return CellSummary(kept=kept, mixed=mixed, full=full, passing=passing, sensor_px=sensor_px, motion_px=moving, features=features, change=change)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """z component of the cross product of 2-vectors (..., 2)."""
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
 
 def _corners(a: np.ndarray) -> np.ndarray:
@@ -184,6 +189,7 @@ def _interpolate(corners: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarra
 
 def cell_pieces(
     job, summary: CellSummary, lens, width: int, height: int, distortion: bool, fringe_px: float, max_sub_nodes: int, colour_error: float,
+    edge_side: int = 1,
 ) -> dict:
     """The pieces a job's cells are drawn as: cell (column i, row j), piece corner (a0, b0) and
     size in the cell, wavelength sub-nodes, sub-samples per side, mixed flag.
@@ -192,7 +198,13 @@ def cell_pieces(
     ``fringe_px`` (level pixels; or of half the light disc's blur, when larger); an interior
     piece, enough that a stratum's colour shift (its colour spread / 3 M) x its irradiance's
     relative gradient stays under ``colour_error`` (the first-order error of a channel's image
-    drawn at its stratum's centre)."""
+    drawn at its stratum's centre).
+
+    An edge piece (one a clipping edge may cross) gets at least ``edge_side`` sub-samples per side
+    whatever the size of its image: where the map compresses (a focused ghost), a piece's image is
+    a pixel or less, but the iris and the rims still cut it on the entrance plane, and one
+    sub-sample would count it all in or all out (measured: 4 % too much energy in a focused
+    ghost, and a 5 % asymmetric on-axis image, with one)."""
     level = LEVELS[job.level]
     traced = summary.features.shape[0]
     out = {k: [] for k in ("cell", "a0", "b0", "size", "sub_nodes", "side", "mixed")}
@@ -231,7 +243,7 @@ def cell_pieces(
         image = piece[..., 0:2]  # (N, 4, K, 2) px
         diagonal = np.maximum(np.linalg.norm(image[:, 3] - image[:, 0], axis=-1), np.linalg.norm(image[:, 2] - image[:, 1], axis=-1)).max(axis=1) / level
         spread = np.linalg.norm(image[:, :, -1] - image[:, :, 0], axis=-1).max(axis=1) / level
-        area = 0.5 * np.abs(np.cross(image[:, 3, traced // 2] - image[:, 0, traced // 2], image[:, 1, traced // 2] - image[:, 2, traced // 2])) / level**2
+        area = 0.5 * np.abs(_cross(image[:, 3, traced // 2] - image[:, 0, traced // 2], image[:, 1, traced // 2] - image[:, 2, traced // 2])) / level**2
         piece_size = np.sqrt(np.maximum(area, 1e-12))
         blur = piece[:, :, :, 13].max(axis=(1, 2)) / level  # the light disc's blur (level px)
         done = ~excluded & (inside | (depth == MAX_DEPTH) | (diagonal <= MIN_PIECE_PX) | (diagonal <= spread))
@@ -240,8 +252,9 @@ def cell_pieces(
             interior_nodes = spread * change / (3.0 * np.maximum(piece_size, 1e-9) * colour_error)
             wanted = np.where(inside, interior_nodes, edge_nodes)[done]
             m = np.asarray([round_sub_nodes(w, max_sub_nodes) for w in wanted], np.int64)
-            stretch = np.minimum(np.sqrt(m), MAX_SPACING_STRETCH)
+            stretch = np.minimum(np.sqrt(m), MAX_SPACING_STRETCH) if job.interleave else np.ones(len(m))
             side = np.clip(np.ceil(diagonal[done] / (job.spacing_px * stretch)), 1, job.max_side).astype(np.int64)
+            side = np.where(inside[done], side, np.maximum(side, edge_side))
             emit(np.stack([i[done], j[done]], -1), a0[done], b0[done], size[done], m, side, np.zeros(int(done.sum()), bool))
         split = ~excluded & ~done
         j, i, corners, change = (np.repeat(x[split], 4, axis=0) for x in (j, i, corners, change))

@@ -19,7 +19,19 @@ import numpy as np
 from ..colour import canonical_colour_space, spectral_table
 from ..optics import EventTable, GhostPath, Lens, cast_floating, on_axis_fresnel, path_events, stop_pass_count
 from ..scenes import LightKind, RenderSettings, Scene, camera_lens, load_scene, sensor_size_mm
-from ._grid import BLUR_DENSITY, EDGE_ERROR, GRID_QUALITY, GridJob, GridQuality, splat_jobs, trace_jobs, traced_wavelengths
+from ._grid import (
+    BLUR_DENSITY,
+    EDGE_ERROR,
+    GRID_QUALITY,
+    GridJob,
+    GridQuality,
+    PreparedSplat,
+    prepare_splat,
+    splat_jobs,
+    splat_prepared,
+    trace_jobs,
+    traced_wavelengths,
+)
 from ._grid_cells import cell_pieces, round_sub_nodes, summarise_cells
 from ._grid_splat import COMPOSE_LEVELS, LEVELS
 from ._grid_trace import SENSOR
@@ -106,9 +118,12 @@ def light_is_extended(lights: LightArrays, k: int) -> bool:
 
 def plan_grid(
     scene: Scene | str, quality: str | None = None, seed: int = 0, *, paths=None, grid_error: float | None = None, progress: bool = False,
+    grid_options: dict | None = None,
 ) -> GridPlan:
     """Everything before the grid render's main pass: scene, lens, lights, paths, the pilot and
-    each path's jobs (arguments as for :func:`jaxflare.render`)."""
+    each path's jobs (arguments as for :func:`jaxflare.render`). ``grid_error`` overrides the
+    quality's target relative error; ``grid_options`` overrides any :class:`GridQuality` field
+    (e.g. ``spacing_px``, ``max_sub_nodes``, ``max_cells``) by name."""
     started = time.perf_counter()
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
@@ -116,6 +131,11 @@ def plan_grid(
     grid = GRID_QUALITY[settings.quality]
     if grid_error is not None:
         grid = dataclasses.replace(grid, target_error=float(grid_error))
+    if grid_options:
+        unknown = sorted(set(grid_options) - {f.name for f in dataclasses.fields(GridQuality)})
+        if unknown:
+            raise ValueError(f"grid_options: unknown {unknown}; valid: {[f.name for f in dataclasses.fields(GridQuality)]}")
+        grid = dataclasses.replace(grid, **grid_options)
     colour_space = canonical_colour_space(settings.colour_space)
     camera = scene.camera
     width, height = camera.resolution
@@ -224,7 +244,7 @@ def plan_grid(
                 box = [cols_kept.min(), cols_kept.max() + 1, rows_kept.min(), rows_kept.max() + 1]
                 extent = box if not kept_any else [min(extent[0], box[0]), max(extent[1], box[1]), min(extent[2], box[2]), max(extent[3], box[3])]
                 kept_any = True
-        per_path.append(dict(edge=edge, coverage=coverage, streak=streak, motion=motion, curvature=curvature, extent=extent, kept=kept_any))
+        per_path.append({"edge": edge, "coverage": coverage, "streak": streak, "motion": motion, "curvature": curvature, "extent": extent, "kept": kept_any})
 
     def sub_nodes_at(k, level):
         return round_sub_nodes(per_path[k]["streak"] / LEVELS[level], grid.max_sub_nodes)
@@ -286,7 +306,7 @@ def plan_grid(
                 GridJob(
                     path=k, slot=k, light=light, layer=int(layers.layer_of_path[k]), level=level, passes=passes[k], domain=(u0, v0, du, dv),
                     cells=cells, step=0.5 if extended else 0.0, sub_nodes=sub_nodes, max_side=grid.max_side, spacing_px=grid.spacing_px,
-                    min_subsamples=int(BLUR_DENSITY * blur_area),
+                    min_subsamples=int(BLUR_DENSITY * blur_area), interleave=grid.interleave,
                 )
             )
     setup = grid_setup(
@@ -302,26 +322,54 @@ def plan_grid(
     )
 
 
-def run_grid(plan: GridPlan):
-    """The main pass: trace every job's vertices, spread their cells; returns the full-resolution
-    layers (Y, H, W, 3) in splat units, the accumulators, and counts."""
+@dataclasses.dataclass
+class PreparedGrid:
+    """The main pass of a grid render up to the splat: traced vertices and device record tables."""
+
+    prepared: PreparedSplat | None
+    rays: int
+
+
+def prepare_grid(plan: GridPlan) -> PreparedGrid:
+    """Trace every job's vertices and decide how each cell is drawn (the host side of the main pass)."""
     setup = plan.setup
     width, height = setup.resolution
     lens32 = setup.lens
     if not plan.jobs:
-        layers = jnp.zeros((plan.layers.count, height, width, 3), jnp.float32)
-        return layers, None, dict(rays=0, subsamples=0, records=0)
+        return PreparedGrid(prepared=None, rays=0)
     rows, host_rows = trace_jobs(setup, lens32, plan.jobs, plan.events, plan.wavelengths)
     distortion = setup.effects.distortion is not None
     summaries = [
         summarise_cells(job, host_rows, len(plan.wavelengths), lens32, plan.pixel_pitch_mm, width, height, distortion) for job in plan.jobs
     ]
-    pieces = [cell_pieces(job, s, lens32, width, height, distortion, plan.grid.fringe_px, job.sub_nodes, plan.grid.colour_error) for job, s in zip(plan.jobs, summaries)]
-    acc, subsamples, records = splat_jobs(
-        setup, plan.jobs, rows, pieces, plan.wavelengths, plan.path_fresnel, plan.spectral.band_nm, plan.layers.count, len(plan.paths),
-    )
-    layers = COMPOSE_LEVELS(acc.buffer, width, height)
-    return layers, acc, dict(rays=int(host_rows.shape[0]), subsamples=int(subsamples), records=int(records))
+    pieces = [
+        cell_pieces(job, s, lens32, width, height, distortion, plan.grid.fringe_px, job.sub_nodes, plan.grid.colour_error, plan.grid.edge_side)
+        for job, s in zip(plan.jobs, summaries)
+    ]
+    prepared = prepare_splat(setup, plan.jobs, rows, pieces, plan.wavelengths, plan.path_fresnel, plan.spectral.band_nm, len(plan.paths))
+    return PreparedGrid(prepared=prepared, rays=int(host_rows.shape[0]))
 
 
-__all__ = ["QUALITY_LEVELS", "SENSOR", "GridPlan", "PathPlan", "plan_grid", "radiance_scale", "run_grid"]
+def grid_layers(setup: RenderSetup, plan: GridPlan, prepared: PreparedGrid):
+    """The full-resolution layers (Y, H, W, 3, splat units) and the accumulators of a prepared
+    grid render. Differentiable in ``setup``'s tints, dirt and light gains (pass a modified
+    ``plan.setup``); the grid itself (which cells, how finely) stays as planned."""
+    width, height = setup.resolution
+    acc = splat_prepared(setup, prepared.prepared, plan.layers.count, len(plan.paths))
+    return COMPOSE_LEVELS(acc.buffer, width, height), acc
+
+
+def run_grid(plan: GridPlan):
+    """The main pass: trace every job's vertices, spread their cells; returns the full-resolution
+    layers (Y, H, W, 3) in splat units, the accumulators, and counts."""
+    prepared = prepare_grid(plan)
+    layers, acc = grid_layers(plan.setup, plan, prepared)
+    inner = prepared.prepared
+    slot_samples = inner.slot_samples if inner is not None else np.zeros(len(plan.paths))
+    return layers, acc, {
+        "rays": prepared.rays, "subsamples": 0 if inner is None else int(inner.total), "records": 0 if inner is None else int(inner.records),
+        "path_samples": slot_samples,
+    }
+
+
+__all__ = ["QUALITY_LEVELS", "SENSOR", "GridPlan", "PathPlan", "PreparedGrid", "grid_layers", "plan_grid", "prepare_grid", "radiance_scale", "run_grid"]

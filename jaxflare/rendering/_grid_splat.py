@@ -95,6 +95,9 @@ class JobTable(eqx.Module):
     """The finite-difference step along the light's axes (0: a point light, no derivative)."""
     weight: Float[Array, " J"]
     """The node's share of its light (strata of equal area: 1 / nodes)."""
+    interleave: Int[Array, " J"]
+    """1: each wavelength sub-node's sub-sample lattice is shifted by its own Kronecker point (their
+    union is finer, so each may be sparser); 0: every lattice centred in its cells (symmetric)."""
     colour: Float[Array, "J M 3"]
     """Per wavelength sub-node of every sub-node choice (:data:`._grid_cells.SUB_NODE_OFFSETS`):
     the light's RGB x (Schlick model) the path's on-axis coated Fresnel factor, averaged over the
@@ -179,7 +182,7 @@ def subsample_values(setup, jobs: JobTable, records: RecordTable, total: Array, 
     sub_node, sub_nodes = records.sub_node[r], records.sub_nodes[r]
     job = records.job[r]
     # each sub-node's lattice is shifted by its own Kronecker point (interleaved: their union is finer)
-    shift_a, shift_b = _kronecker(sub_node + 7 * job)
+    shift_a, shift_b = _kronecker(jnp.where(jobs.interleave[job] > 0, sub_node, 0))  # index 0: the centred lattice
     mixed = records.mixed[r]
     piece = records.piece[r]
     a = piece[:, 0] + piece[:, 2] * (local % side + jnp.where(mixed, 0.5, shift_a)) / side
@@ -282,7 +285,9 @@ def splat_subsamples(
             path_bound=acc.path_bound.at[slot].add(unclipped),
         )
 
-    return jax.lax.fori_loop(0, chunks, body, acc)
+    # a loop of static length (the bucketed chunk table) whose padding chunks are skipped at run
+    # time: reverse-mode differentiable, unlike a loop to the dynamic ``chunks``
+    return jax.lax.fori_loop(0, chunk_first.shape[0], lambda c, acc: jax.lax.cond(c < chunks, body, lambda c, acc: acc, c, acc), acc)
 
 
 SPLAT_SUBSAMPLES = eqx.filter_jit(splat_subsamples)

@@ -75,6 +75,10 @@ TRACE_CHUNK = 1024
 """Rays per traced chunk: every chunk follows one path (measured: the exact kernel's throughput is
 flat from 1k rays per call up, and small chunks waste little padding per path)."""
 
+TRACE_BLOCK = 16
+"""Chunks traced per call: every render traces whole blocks of ``TRACE_BLOCK * TRACE_CHUNK`` rays,
+so the pilot and the main pass of every render of a lens share one compiled kernel."""
+
 NUM_QUANTITIES = 18
 """Columns of a traced vertex row (see :func:`trace_grid`)."""
 SENSOR, STOP, MARGIN, COS, THROUGHPUT, VALID, VISIBLE, FLUX, FRONT, HOOD = 0, 2, 8, 9, 10, 11, 12, 13, 14, 16
