@@ -11,7 +11,7 @@ each Monte Carlo render's error against the reference and the seed-to-seed noise
 so a grid bias would show as MC error above its noise.
 
     python benchmarks/bench_error_time.py            # demo 720p preview (several minutes)
-    python benchmarks/bench_error_time.py --quick    # 320 x 180, fewer configurations
+    python benchmarks/bench_error_time.py --quick    # 160 x 90, fewer configurations (a smoke test)
 """
 
 from __future__ import annotations
@@ -70,13 +70,14 @@ def render(scene, label, **kwargs):
 
 
 def main(argv=None) -> int:
-    parser = make_parser(__doc__, "320 x 180 and fewer configurations (a smoke test)")
+    parser = make_parser(__doc__, "160 x 90 and fewer configurations (a smoke test)")
     add_out_option(parser, quick_folder=True)
+    add_stem_option(parser, "file name stem of the results (default error_time, error_time_quick with --quick)")
     args = parser.parse_args(argv)
     info, machine = announce("bench_error_time", args.quick)
     scene = jaxflare.load_scene("demo")
     if args.quick:
-        scene = with_resolution(scene, (320, 180))
+        scene = with_resolution(scene, (160, 90))
     width, height = scene.camera.resolution
     luminance = np.asarray(spectral_table("ACEScg").luminance_weights)
 
@@ -125,40 +126,46 @@ def main(argv=None) -> int:
         log(f"  {label:28s} cold {cold:7.2f} s  warm {warm:7.2f} s  samples {result.statistics.samples:,}")
         measure(label, "grid", result, (cold, warm), repr(options))
 
+    meta = run_meta(
+        "bench_error_time", args.quick, dict(scene="demo", resolution=[width, height], mc_samples=list(counts), grid=[c[0] for c in GRID_CONFIGS]),
+        info, machine, reference=dict(estimator="grid", options=REFERENCE_OPTIONS, grid_error=0.003, seconds=reference_seconds,
+                                      samples=int(reference.statistics.samples)),
+        mc_preview_seed_noise=noise, rows=rows,
+    )
+    write_results(args, rows, meta, machine, width, height)
+    return 0
+
+
+FIELDS = ["label", "estimator", "setting", "resolution", "cold_seconds", "warm_seconds", "samples", "relative_rmse", "flip", "negative_fraction"]
+
+
+def draw(rows, machine, width, height):
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    for estimator, marker in (("monte-carlo", "o-"), ("grid", "s-")):
+        chosen = sorted((r for r in rows if r["estimator"] == estimator), key=lambda r: r["warm_seconds"])
+        for ax, key in zip(axes, ("relative_rmse", "flip"), strict=True):
+            ax.plot([r["warm_seconds"] for r in chosen], [r[key] for r in chosen], marker, label=estimator)
+            for r in chosen:
+                ax.annotate(r["label"], (r["warm_seconds"], r[key]), fontsize=6)
+    for ax, title in zip(axes, ("relative RMSE of the flare RGB", "mean FLIP (LDR previews)"), strict=True):
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("warm wall time (s)")
+        ax.set_title(title)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend()
+    fig.suptitle(f"demo scene {width}x{height}: error vs warm time against a fine-grid reference ({machine})", fontsize=8)
+    return fig
+
+
+def write_results(args, rows, meta, machine, width, height):
     out = Outputs(output_folder(args, "error_time"))
     stem = quick_stem(args, "error_time")
-    fields = ["label", "estimator", "setting", "resolution", "cold_seconds", "warm_seconds", "samples", "relative_rmse", "flip", "negative_fraction"]
-    out.csv(f"{stem}.csv", rows, fields)
-    out.json(
-        f"{stem}.json",
-        run_meta(
-            "bench_error_time", args.quick, {"scene": "demo", "resolution": [width, height], "mc_samples": list(counts), "grid": [c[0] for c in GRID_CONFIGS]},
-            info, machine, reference={"estimator": "grid", "options": REFERENCE_OPTIONS, "grid_error": 0.003, "seconds": reference_seconds,
-                                          "samples": int(reference.statistics.samples)},
-            mc_preview_seed_noise=noise, rows=rows,
-        ),
-    )
-
-    def draw(rows):
-        plt = pyplot()
-        fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
-        for estimator, marker in (("monte-carlo", "o-"), ("grid", "s-")):
-            chosen = sorted((r for r in rows if r["estimator"] == estimator), key=lambda r: r["warm_seconds"])
-            for ax, key in zip(axes, ("relative_rmse", "flip")):
-                ax.plot([r["warm_seconds"] for r in chosen], [r[key] for r in chosen], marker, label=estimator)
-        for ax, title in zip(axes, ("relative RMSE of the flare RGB", "mean FLIP (LDR previews)")):
-            ax.set_xscale("log")
-            ax.set_yscale("log")
-            ax.set_xlabel("warm wall time (s)")
-            ax.set_title(title)
-            ax.grid(True, which="both", alpha=0.3)
-            ax.legend()
-        fig.suptitle(f"demo scene {width}x{height}: error vs time against a fine-grid reference ({machine})", fontsize=8)
-        return fig
-
-    out.chart(f"{stem}.png", draw, rows)
+    out.csv(f"{stem}.csv", rows, FIELDS)
+    out.json(f"{stem}.json", meta)
+    out.chart(f"{stem}.png", draw, rows, machine, width, height)
     log(f"wrote {shown_paths(out.written)}")
-    return 0
 
 
 if __name__ == "__main__":
