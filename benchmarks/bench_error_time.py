@@ -23,6 +23,7 @@ import numpy as np
 from _harness import (
     Outputs,
     add_out_option,
+    add_stem_option,
     announce,
     log,
     make_parser,
@@ -127,9 +128,9 @@ def main(argv=None) -> int:
         measure(label, "grid", result, (cold, warm), repr(options))
 
     meta = run_meta(
-        "bench_error_time", args.quick, dict(scene="demo", resolution=[width, height], mc_samples=list(counts), grid=[c[0] for c in GRID_CONFIGS]),
-        info, machine, reference=dict(estimator="grid", options=REFERENCE_OPTIONS, grid_error=0.003, seconds=reference_seconds,
-                                      samples=int(reference.statistics.samples)),
+        "bench_error_time", args.quick, {"scene": "demo", "resolution": [width, height], "mc_samples": list(counts), "grid": [c[0] for c in GRID_CONFIGS]},
+        info, machine, reference={"estimator": "grid", "options": REFERENCE_OPTIONS, "grid_error": 0.003, "seconds": reference_seconds,
+                                      "samples": int(reference.statistics.samples)},
         mc_preview_seed_noise=noise, rows=rows,
     )
     write_results(args, rows, meta, machine, width, height)
