@@ -1,6 +1,6 @@
 """Exact-trace throughput of jaxflare (rays per second), side by side with optiland.
 
-Run:  python benchmarks/bench_trace.py [--quick] [--lenses NAME ...] [--no-optiland] [--out DIR]
+Run:  python benchmarks/bench_trace.py [--quick] [--lenses NAME ...] [--no-optiland] [--no-former] [--out DIR]
 
 For each bundled lens (Biotar, Angenieux double Gauss, Nikon 28-70 zoom; a missing one is skipped
 with a note) and each batch size it times :func:`jaxflare.trace` on the primary path and on a sample
@@ -41,6 +41,7 @@ from _harness import (
     make_parser,
     pyplot,
     quick_stem,
+    REPO,
     run_meta,
     shown_paths,
     timed,
@@ -57,7 +58,7 @@ LENSES = [
     ("nikon_afs_28_70_zoom", "Nikon 28-70 (wide)"),
 ]
 
-FULL = dict(batches=[2**12, 2**14, 2**16, 2**18], repeats=5, ghost_sample=10, ghost_repeats=5, all_ghost_rays=2**14,
+FULL = dict(batches=[2**12, 2**14, 2**16, 2**18, 2**20], repeats=5, ghost_sample=10, ghost_repeats=5, all_ghost_rays=2**14,
             all_ghost_repeats=3, check_rays=2**14, slow_call_s=0.5, long_pass_s=30.0, lenses=[name for name, _ in LENSES])
 QUICK = dict(batches=[2**10, 2**12], repeats=2, ghost_sample=3, ghost_repeats=2, all_ghost_rays=2**10, all_ghost_repeats=1,
              check_rays=1024, slow_call_s=0.5, long_pass_s=30.0, lenses=["zeiss_biotar"])
@@ -149,6 +150,16 @@ class JaxflareBench:
         result = self.jaxflare.trace(self.lens, origins, directions, WAVELENGTH_NM, path)
         return self.jax.block_until_ready(result)
 
+    def call_former(self, origins, directions, path):
+        """The same trace with the formulation jaxflare 0.1.0 shipped (tests/optics/reference_tracer.py)."""
+        from jaxflare.optics import path_events, stop_pass_count
+
+        jnp = self.jax.numpy
+        events = path_events(self.lens, path)
+        wavelength = jnp.full(origins.shape[0], WAVELENGTH_NM, origins.dtype)
+        result = former_tracer()(self.lens, origins, directions, wavelength, jnp.asarray(events), stop_pass_count(events, self.lens.stop_index))
+        return self.jax.block_until_ready(result)
+
     def warm(self, origins, directions, path) -> float:
         """Make sure the variant this call needs is compiled (an untimed first call if it is new);
         returns the wall time of the call that compiled it (recorded once per variant)."""
@@ -160,6 +171,25 @@ class JaxflareBench:
             elapsed = time.perf_counter() - t0
             self.compile_s[key] = elapsed if self.compilations() != before else 0.0
         return self.compile_s[key]
+
+
+def former_tracer():
+    """``reference_trace_events``: the exact tracer as jaxflare 0.1.0 formulated it, which the tests
+    keep as the reference of today's tracer (loaded from its file, not imported as a package)."""
+    import importlib.util
+
+    global _FORMER
+    if _FORMER is None:
+        spec = importlib.util.spec_from_file_location("reference_tracer", REPO / "tests" / "optics" / "reference_tracer.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        _FORMER = module.reference_trace_events
+    return _FORMER
+
+
+_FORMER = None
+FORMER = "jaxflare-0.1.0"
+"""The tool name of the former formulation in the results."""
 
 
 # --------------------------------------------------------------------------- optiland
@@ -516,6 +546,20 @@ def bench_lens(name: str, label: str, cfg: dict, ol: dict | None, machine: str, 
                 + ", ".join(f"{k} stop pass{'es' if k != 1 else ''}: {statistics.median(v) * 1e3:.1f} ms ({len(v)})"
                             for k, v in sorted(by_passes.items()))
                 + f"; {ghost_repeats} call(s)/path; compile {ghost_compile:.2f} s)")
+        # the former formulation, same rays, same calls
+        if cfg.get("former", True):
+            jb.call_former(*rays, None)
+            med_f, _, last = timed(lambda: jb.call_former(*rays, None), repeats)
+            r = row("primary", "primary", batch, FORMER, jax_version, "float32", med_f, float("nan"), repeats, float(np.mean(np.asarray(last.valid))), 1)
+            log(f"  {FORMER} primary N={batch:>7d}: {med_f * 1e3:9.2f} ms {r['rays_per_s'] / 1e6:8.3f} Mrays/s")
+            if sample:
+                former_times = []
+                for p in sample:
+                    jb.call_former(*rays, p)
+                    former_times.append(timed(lambda p=p: jb.call_former(*rays, p), ghost_repeats)[0])
+                med_fg = statistics.median(former_times)
+                r = row("ghost_median", f"median of {len(sample)}", batch, FORMER, jax_version, "float32", med_fg, float("nan"), ghost_repeats, float("nan"), 1)
+                log(f"  {FORMER} ghost   N={batch:>7d}: {med_fg * 1e3:9.2f} ms {r['rays_per_s'] / 1e6:8.3f} Mrays/s (median over {len(sample)} paths)")
         # optiland, same rays
         if ob is not None:
             try:
@@ -571,8 +615,19 @@ def bench_lens(name: str, label: str, cfg: dict, ol: dict | None, machine: str, 
     r = row("all_ghosts", f"all {len(paths)}", count, "jaxflare", jax_version, "float32", med, compile_s, all_repeats,
             float("nan"), len(paths))
     lens_info["all_ghosts_s"] = med
+    lens_info["all_ghosts_first_call_s"] = compile_s
     log(f"  jaxflare ALL {len(paths)} ghost paths x {count} rays: {med:.2f} s ({r['rays_per_s'] / 1e6:.3f} Mrays/s, "
         f"{med / len(paths) * 1e3:.1f} ms/path; median of {len(times)}; compile {compile_s:.2f} s)")
+    if cfg.get("former", True):
+        for p in {jb.variant(count, p): p for p in paths}.values():
+            jb.call_former(*rays, p)  # compile each variant, untimed
+        t0 = time.perf_counter()
+        for p in paths:
+            jb.call_former(*rays, p)
+        former_s = time.perf_counter() - t0
+        row("all_ghosts", f"all {len(paths)}", count, FORMER, jax_version, "float32", former_s, float("nan"), 1, float("nan"), len(paths))
+        lens_info["all_ghosts_former_s"] = former_s
+        log(f"  {FORMER} ALL {len(paths)} ghost paths x {count} rays: {former_s:.2f} s (1 pass): {former_s / med:.1f}x slower")
     return rows, lens_info
 
 
@@ -582,7 +637,8 @@ def summary_table(rows: list[dict], lens_infos: list[dict]) -> str:
         return max(cand, key=lambda r: r["rays_per_s"]) if cand else None
 
     lines = []
-    header = f"{'lens':22s} {'path':22s} {'jaxflare rays/s':>16s} {'@N':>7s} {'optiland rays/s':>16s} {'@N':>7s} {'ratio':>7s}"
+    header = (f"{'lens':22s} {'path':22s} {'jaxflare rays/s':>16s} {'@N':>7s} {'optiland rays/s':>16s} {'@N':>7s} {'ratio':>7s} "
+              f"{'former rays/s':>14s} {'speed-up':>9s}")
     lines += [header, "-" * len(header)]
     for info in lens_infos:
         lens = info["lens"]
@@ -599,7 +655,9 @@ def summary_table(rows: list[dict], lens_infos: list[dict]) -> str:
                 continue
             ratio = f"{j['rays_per_s'] / o['rays_per_s']:6.1f}x" if o else "    -"
             ostr = f"{o['rays_per_s']:16.3e} {o['batch_rays']:7d}" if o else f"{'-':>16s} {'':7s}"
-            lines.append(f"{info['label']:22s} {title:22s} {j['rays_per_s']:16.3e} {j['batch_rays']:7d} {ostr} {ratio:>7s}")
+            f = [r for r in rows if r["tool"] == FORMER and r["lens"] == lens and r["path_kind"] in jk and r["batch_rays"] == j["batch_rays"]]
+            fstr = f"{f[0]['rays_per_s']:14.3e} {j['rays_per_s'] / f[0]['rays_per_s']:8.1f}x" if f else f"{'-':>14s} {'-':>9s}"
+            lines.append(f"{info['label']:22s} {title:22s} {j['rays_per_s']:16.3e} {j['batch_rays']:7d} {ostr} {ratio:>7s} {fstr}")
     return "\n".join(lines)
 
 
@@ -622,6 +680,9 @@ def _chart(rows: list[dict], meta: dict):
         ("optiland", "primary"): dict(color="C3", marker="o", ls="-"),
         ("optiland", "ghost_path"): dict(color="C3", marker="^", ls=":"),
         ("jaxflare", "all_ghosts"): dict(color="C2", marker="*", ls="none", ms=12),
+        (FORMER, "primary"): dict(color="0.55", marker="o", ls="-"),
+        (FORMER, "ghost_median"): dict(color="0.55", marker="s", ls="--"),
+        (FORMER, "all_ghosts"): dict(color="0.55", marker="*", ls="none", ms=12),
     }
     names = {"primary": "primary", "ghost_median": "ghost (median over sampled paths)",
              "ghost_path": "ghost (the path compared with optiland)", "all_ghosts": "all ghost paths (total)"}
@@ -644,7 +705,8 @@ def _chart(rows: list[dict], meta: dict):
         ax.grid(True, which="both", alpha=0.3)
     axes[0][0].set_ylabel("rays / s")
     m = meta["machine"]
-    fig.suptitle(f"Exact-trace throughput: jaxflare (float32) vs optiland {meta.get('optiland_version') or '(skipped)'} (float64)\n"
+    fig.suptitle(f"Exact-trace throughput: jaxflare (float32; grey: the former formulation, {FORMER}) vs optiland "
+                 f"{meta.get('optiland_version') or '(skipped)'} (float64)\n"
                  f"{cpu_label(m)}, jax {m.get('jax')}, "
                  f"load avg {m.get('load_average_start')}", fontsize=9)
     fig.legend(list(handles.values()), list(handles.keys()), loc="lower center", ncol=3, fontsize=8, frameon=False)
@@ -661,6 +723,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ghost-sample", type=int, help="number of ghost paths timed individually")
     parser.add_argument("--all-ghost-rays", type=int, help="rays per path for the all-ghost-paths total")
     parser.add_argument("--no-optiland", action="store_true", help="skip the optiland comparison")
+    parser.add_argument("--no-former", action="store_true", help=f"skip the former formulation ({FORMER})")
     add_out_option(parser, quick_folder=False)
     add_stem_option(parser, "output file stem (default trace_throughput, or trace_throughput_quick with --quick)")
     args = parser.parse_args(argv)
@@ -673,6 +736,7 @@ def main(argv: list[str] | None = None) -> int:
     for key in ("repeats", "ghost_repeats", "ghost_sample", "all_ghost_rays"):
         if getattr(args, key):
             cfg[key] = getattr(args, key)
+    cfg["former"] = not args.no_former
     stem = quick_stem(args, STEM)
 
     started = time.perf_counter()

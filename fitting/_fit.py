@@ -33,7 +33,7 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
-from jaxflare.io import write_exr, write_text_atomic
+from jaxflare.io import atomic_output_group, write_exr
 from jaxflare.optics import cast_floating, ghost_paths
 from jaxflare.scenes import Light, camera_lens
 
@@ -394,12 +394,16 @@ def save_fit(result: FitResult, path: str | os.PathLike) -> str:
     path = os.fspath(path)
     stem = os.path.splitext(path)[0]
     data = result.as_dict()
-    if result.dirt is not None:
-        dirt_file = stem + "_dirt.exr"
-        write_exr(dirt_file, {"": np.ascontiguousarray(result.dirt.astype(np.float32))}, pixel_type="float")
-        data["dirt_map"] = os.path.basename(dirt_file)
-    write_exr(stem + "_render.exr", {"": result.render.astype(np.float32), "residual": result.residual.astype(np.float32)}, pixel_type="float")
-    write_text_atomic(path, json.dumps(data, indent=2))
+    render_file, dirt_file = stem + "_render.exr", stem + "_dirt.exr"
+    targets = [path, render_file] + ([dirt_file] if result.dirt is not None else [])
+    # the three files are committed together: a reader never sees a JSON next to another fit's renders
+    with atomic_output_group(targets, stale=() if result.dirt is not None else (dirt_file,)) as temporaries:
+        if result.dirt is not None:
+            write_exr(temporaries[2], {"": np.ascontiguousarray(result.dirt.astype(np.float32))}, pixel_type="float")
+            data["dirt_map"] = os.path.basename(dirt_file)
+        write_exr(temporaries[1], {"": result.render.astype(np.float32), "residual": result.residual.astype(np.float32)}, pixel_type="float")
+        with open(temporaries[0], "w", encoding="utf-8") as handle:
+            handle.write(json.dumps(data, indent=2))
     return path
 
 

@@ -3,10 +3,17 @@
     jaxflare lens list                      bundled lenses with EFL, f-number, interfaces, ghost paths
     jaxflare lens info NAME [--zoom K]      one lens: data, surfaces, ghost paths ranked by strength
     jaxflare lens plot NAME -o OUT.png      cross-section with primary rays and a ghost path
-    jaxflare lens convert IN OUT            between the jaxflare TOML format and Zemax .zmx
+    jaxflare lens convert IN OUT            any lens file (also .lens, .json, .xml, .dat) to TOML or Zemax .zmx
     jaxflare render SCENE.toml -o OUT.exr   render a scene's flares to a multi-layer EXR (--png: preview)
     jaxflare fit PLATE --scene S -o F.json  fit coating colours / dirt / light gains to a plate
     jaxflare demo [--out DIR]               the demo: lens table, cross-section, demo scene render
+
+Errors are one line on stderr, ``jaxflare: error: ...``, and exit with status 2 (bad input or
+arguments); an unexpected failure is one line ``jaxflare: internal error: ...`` with status 70
+(``JAXFLARE_TRACEBACK=1`` shows the traceback). Ctrl-C exits with 130 and a termination signal
+(SIGTERM) with 143, one line each, after removing the temporary files of unfinished outputs; a
+closed pipe (``jaxflare lens list | head -1``) ends quietly with 141. ``--help`` and the ``lens``
+commands that only read and write lens files import no JAX.
 """
 
 from __future__ import annotations
@@ -14,16 +21,61 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import signal
 import sys
 import warnings
 
+from ._limits import MAX_SAMPLES, MAX_SEED
 
-def _load(name: str, zoom: int = 0):
+EXIT_ERROR, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_PIPE, EXIT_TERMINATED = 2, 70, 130, 141, 143
+
+
+class _Terminated(BaseException):
+    """Raised by the SIGTERM handler, so that unfinished outputs remove their temporary files."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, but a usage error is one line on stderr (``jaxflare ...: error: ...``), status 2."""
+
+    def error(self, message: str):
+        self.exit(EXIT_ERROR, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _int_range(low: int, high: int, what: str):
+    def parse(text: str) -> int:
+        try:
+            value = int(text, 0)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what} must be an integer, got {text!r}") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"{what} must be from {low} to {high:,}, got {text}")
+        return value
+
+    return parse
+
+
+def _glass_alias(text: str) -> tuple[str, str]:
+    name, sep, target = text.partition("=")
+    if not sep or not name.strip() or not target.strip():
+        raise argparse.ArgumentTypeError(f"--glass takes NAME=CATALOG:GLASS (e.g. L-TIM28_MOLD=OHARA:L-TIM28), got {text!r}")
+    return name.strip(), target.strip()
+
+
+def _lens_options(args) -> dict:
+    options = {}
+    if getattr(args, "semi_aperture", None):
+        options["semi_aperture"] = args.semi_aperture
+    if getattr(args, "glass", None):
+        options["glass_aliases"] = dict(args.glass)
+    return options
+
+
+def _load(name: str, zoom: int = 0, options: dict | None = None):
     from .io import load_lens
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        lens = load_lens(name, zoom)
+        lens = load_lens(name, zoom, **(options or {}))
     for warning in caught:
         print(f"note: {warning.message}", file=sys.stderr)
     return lens
@@ -49,10 +101,10 @@ def _lens_table(names: list[str]) -> str:
     return "\n".join("  ".join(cell.ljust(width) for cell, width in zip(row, widths)) for row in rows)
 
 
-def _lens_info(name: str, zoom: int, top: int) -> str:
+def _lens_info(name: str, zoom: int, top: int, options: dict | None = None) -> str:
     from .optics import rank_ghost_paths
 
-    lens = _load(name, zoom)
+    lens = _load(name, zoom, options)
     lines = [lens.describe()]
     z_ep, r_ep = lens.entrance_pupil()
     z_xp, r_xp = lens.exit_pupil()
@@ -91,18 +143,31 @@ def _demo(out_dir: str, samples: int | None = None) -> int:
     return _render(demo_scene_path(), os.path.join(out_dir, "demo.exr"), None, 0, True, samples, None)
 
 
+def _check_output(output: str, extension: str) -> None:
+    """Refuse an output path that cannot be written before any work is done."""
+    if not output.lower().endswith(extension):
+        raise ValueError(f"-o/--output must end in {extension}, got {output!r}")
+    if os.path.isdir(output):
+        raise ValueError(f"-o/--output {output!r} is a directory; give a file name ending in {extension}")
+    folder = os.path.dirname(os.path.abspath(output))
+    existing = folder
+    while not os.path.exists(existing):
+        existing = os.path.dirname(existing)
+    if not os.path.isdir(existing):
+        raise ValueError(f"-o/--output {output!r}: {existing!r} is a file, so the folder cannot be created")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ValueError(f"-o/--output {output!r}: the folder {existing!r} is not writable")
+
+
 def _render(scene_path: str, output: str, quality, seed: int, png: bool, samples, method, estimator=None) -> int:
     from .rendering import render
 
-    if not output.lower().endswith(".exr"):
-        raise ValueError(f"-o/--output must end in .exr, got {output!r}")
+    _check_output(output, ".exr")
     result = render(scene_path, quality=quality, seed=seed, samples=samples, method=method, progress=True, estimator=estimator)
-    exr = result.write_exr(output)
+    written = result.write_files(output, png=png)
     stats = result.statistics
-    print(f"wrote {os.path.abspath(exr)}")
-    if png:
-        preview = result.write_png(os.path.splitext(output)[0] + ".png")
-        print(f"wrote {os.path.abspath(preview)}")
+    for path in written:
+        print(f"wrote {os.path.abspath(path)}")
     own = [layer["layer"] for layer in stats["layers"]]
     print(
         f"{stats['lens']}: {stats['samples']:,} samples ({stats['sampling']}), {stats['paths_rendered']} paths "
@@ -118,31 +183,46 @@ def _render(scene_path: str, output: str, quality, seed: int, png: bool, samples
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="jaxflare", description="Physically based lens flares in JAX.")
-    commands = parser.add_subparsers(dest="command", required=True)
+    parser = _Parser(prog="jaxflare", description="Physically based lens flares in JAX.")
+    commands = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
-    lens = commands.add_parser("lens", help="inspect, plot and convert lenses").add_subparsers(dest="lens_command", required=True)
+    lens = commands.add_parser("lens", help="inspect, plot and convert lenses").add_subparsers(dest="lens_command", required=True, parser_class=_Parser)
     lens.add_parser("list", help="bundled lenses")
+
+    def lens_file_options(command):
+        command.add_argument(
+            "--semi-aperture", choices=["file", "auto", "diameter", "clip"], default=None,
+            help="how to take the file's semi-apertures: as given (file, the default), derived from the stop and the marginal and "
+            "chief rays (auto), halved because the column holds diameters (diameter), clipped to the sphere (clip)",
+        )
+        command.add_argument(
+            "--glass", type=_glass_alias, action="append", metavar="NAME=CATALOG:GLASS",
+            help="read the glass NAME as a catalog glass (repeatable), e.g. --glass L-TIM28_MOLD=OHARA:L-TIM28",
+        )
+
     info = lens.add_parser("info", help="one lens in detail")
-    info.add_argument("name", help="bundled lens name, .toml or .zmx path")
-    info.add_argument("--zoom", type=int, default=0, help="zoom position (default 0)")
-    info.add_argument("--top", type=int, default=15, help="how many ghost paths to list")
+    info.add_argument("name", help="bundled lens name or lens file (.toml, .zmx, .lens, .json, .xml, .dat)")
+    info.add_argument("--zoom", type=_int_range(0, 1000, "--zoom"), default=0, help="zoom position (default 0)")
+    info.add_argument("--top", type=_int_range(0, 100000, "--top"), default=15, help="how many ghost paths to list")
+    lens_file_options(info)
     plot = lens.add_parser("plot", help="cross-section PNG")
     plot.add_argument("name")
     plot.add_argument("-o", "--output", required=True, help="PNG path")
-    plot.add_argument("--zoom", type=int, default=0)
+    plot.add_argument("--zoom", type=_int_range(0, 1000, "--zoom"), default=0)
     plot.add_argument("--ghost", default="strongest", help="ghost path as J,I, 'strongest' or 'none'")
-    convert = lens.add_parser("convert", help="convert between .toml and .zmx")
-    convert.add_argument("source")
-    convert.add_argument("target")
+    lens_file_options(plot)
+    convert = lens.add_parser("convert", help="convert a lens file to the jaxflare TOML format or Zemax .zmx")
+    convert.add_argument("source", help="bundled lens name or lens file (.toml, .zmx, .lens, .json, .xml, .dat)")
+    convert.add_argument("target", help="output .toml or .zmx")
+    lens_file_options(convert)
 
     render = commands.add_parser("render", help="render a scene's flares to a multi-layer OpenEXR")
     render.add_argument("scene", help="scene TOML file (format: jaxflare/scenes/FORMAT.md), or 'demo'")
     render.add_argument("-o", "--output", required=True, help="output .exr path")
     render.add_argument("--quality", choices=["preview", "production"], default=None, help="default: the scene's [render] quality")
-    render.add_argument("--seed", type=int, default=0, help="random seed (default 0); the same seed gives the same image")
+    render.add_argument("--seed", type=_int_range(0, MAX_SEED, "--seed"), default=0, help="random seed 0 .. 2^32-1 (default 0); the same seed gives the same image")
     render.add_argument("--png", action="store_true", help="also write a tone-mapped PNG preview beside the EXR")
-    render.add_argument("--samples", type=int, default=None, help="total Monte Carlo samples (default: the quality's)")
+    render.add_argument("--samples", type=_int_range(1, MAX_SAMPLES, "--samples"), default=None, help="total Monte Carlo samples, at most 2^32 (default: the quality's)")
     render.add_argument("--method", choices=["auto", "polynomial", "exact"], default=None, help="path evaluation (default: the scene's)")
     render.add_argument("--estimator", choices=["monte-carlo", "grid"], default=None, help="monte-carlo or the deterministic grid (default: the scene's)")
 
@@ -154,17 +234,17 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--solver", default=None, help="levenberg-marquardt (default), gauss-newton or bfgs")
     fit.add_argument("--layer", default=None, help="EXR layer of the plate (default: the default layer)")
     fit.add_argument("--mask", default=None, help="mask image: 1 where the plate shows flare to fit, 0 to ignore")
-    fit.add_argument("--samples", type=int, default=None, help="render samples of the fit's model (default 2^22 with path images, 2^19 with samples)")
-    fit.add_argument("--seed", type=int, default=0)
+    fit.add_argument("--samples", type=_int_range(1, MAX_SAMPLES, "--samples"), default=None, help="render samples of the fit's model (default 2^22 with path images, 2^19 with samples)")
+    fit.add_argument("--seed", type=_int_range(0, MAX_SEED, "--seed"), default=0)
     fit.add_argument("--model", default="auto", help="auto (default), path-images (coatings and lights only) or samples")
     fit.add_argument("--method", default="exact", help="how the model's samples are traced: exact (default), polynomial or auto")
-    fit.add_argument("--block", type=int, default=1, help="compare sums over BLOCK x BLOCK pixels (default 1; 4-8 for noisy plates)")
-    fit.add_argument("--dirt-resolution", type=int, default=16, help="dirt map cells per side (default 16)")
-    fit.add_argument("--max-steps", type=int, default=100)
+    fit.add_argument("--block", type=_int_range(1, 4096, "--block"), default=1, help="compare sums over BLOCK x BLOCK pixels (default 1; 4-8 for noisy plates)")
+    fit.add_argument("--dirt-resolution", type=_int_range(1, 1024, "--dirt-resolution"), default=16, help="dirt map cells per side (default 16)")
+    fit.add_argument("--max-steps", type=_int_range(0, 100000, "--max-steps"), default=100)
 
     demo = commands.add_parser("demo", help="run the demo")
     demo.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
-    demo.add_argument("--samples", type=int, default=None, help="render samples (default: the demo scene's preview quality)")
+    demo.add_argument("--samples", type=_int_range(1, MAX_SAMPLES, "--samples"), default=None, help="render samples (default: the demo scene's preview quality)")
     return parser
 
 
@@ -176,11 +256,58 @@ def _parse_ghost(text: str):
     try:
         j, i = (int(v) for v in text.split(","))
     except ValueError:
-        raise SystemExit(f"jaxflare: --ghost must be J,I (e.g. 5,2), 'strongest' or 'none', got {text!r}") from None
+        raise ValueError(f"--ghost must be J,I (e.g. 5,2), 'strongest' or 'none', got {text!r}") from None
     return (j, i)
 
 
+def _one_line(error: BaseException) -> str:
+    message = error.args[0] if isinstance(error, KeyError) and error.args else str(error)
+    return " ".join(str(message).split()) or type(error).__name__
+
+
+def _on_terminate(signum, frame):
+    raise _Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run the command line; returns the exit status (see the module docstring)."""
+    interrupted = []
+
+    def on_interrupt(signum, frame):
+        interrupted.append(signum)
+        raise KeyboardInterrupt
+
+    handlers = {}
+    for signum, handler in ((signal.SIGTERM, _on_terminate), (signal.SIGINT, on_interrupt)):
+        try:
+            handlers[signum] = signal.signal(signum, handler)
+        except ValueError:  # not the main thread: leave the signals alone
+            pass
+    try:
+        status = _run(argv)
+        if interrupted:  # an interrupt that something below swallowed still ends the command
+            raise KeyboardInterrupt
+        return status
+    except KeyboardInterrupt:
+        print("jaxflare: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except _Terminated:
+        print("jaxflare: terminated", file=sys.stderr)
+        return EXIT_TERMINATED
+    except BrokenPipeError:
+        # the reader of our output went away: say nothing, and keep Python from complaining at exit
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass
+        return EXIT_PIPE
+    finally:
+        for signum, handler in handlers.items():
+            signal.signal(signum, handler)
+
+
+def _run(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
     from .optics import LensFormatError
 
@@ -196,18 +323,24 @@ def main(argv: list[str] | None = None) -> int:
 
             print(_lens_table(bundled_lens_names()))
         elif args.lens_command == "info":
-            print(_lens_info(args.name, args.zoom, args.top))
+            print(_lens_info(args.name, args.zoom, args.top, _lens_options(args)))
         elif args.lens_command == "plot":
             from .io import save_cross_section
 
-            print(save_cross_section(_load(args.name, args.zoom), args.output, ghost_path=_parse_ghost(args.ghost)))
+            print(save_cross_section(_load(args.name, args.zoom, _lens_options(args)), args.output, ghost_path=_parse_ghost(args.ghost)))
         elif args.lens_command == "convert":
-            _convert(args.source, args.target)
+            _convert(args.source, args.target, _lens_options(args))
         return 0
-    except (LensFormatError, FileNotFoundError, ValueError, KeyError) as error:
-        message = error.args[0] if isinstance(error, KeyError) and error.args else error
-        print(f"jaxflare: error: {message}", file=sys.stderr)
-        return 2
+    except (LensFormatError, FileNotFoundError, ValueError, KeyError, OSError) as error:
+        print(f"jaxflare: error: {_one_line(error)}", file=sys.stderr)
+        return EXIT_ERROR
+    except (KeyboardInterrupt, _Terminated, BrokenPipeError, SystemExit):
+        raise
+    except Exception as error:  # a bug: one line, the traceback on request
+        if os.environ.get("JAXFLARE_TRACEBACK"):
+            raise
+        print(f"jaxflare: internal error: {type(error).__name__}: {_one_line(error)} (JAXFLARE_TRACEBACK=1 shows the traceback)", file=sys.stderr)
+        return EXIT_INTERNAL
 
 
 def _fit(args) -> int:
@@ -217,8 +350,7 @@ def _fit(args) -> int:
 
     scene = load_scene(args.scene)
     params = tuple(p.strip() for p in args.params.split(",") if p.strip())
-    if not args.output.lower().endswith(".json"):
-        raise ValueError(f"-o/--output must end in .json, got {args.output!r}")
+    _check_output(args.output, ".json")
     plate = fitting.load_plate(args.plate, layer=args.layer, mask=args.mask, expected_size=tuple(scene.camera.resolution))
 
     def report(step, loss):
@@ -239,18 +371,22 @@ def _fit(args) -> int:
     return 0 if result.converged else 1
 
 
-def _convert(source: str, target: str) -> None:
+def _convert(source: str, target: str, options: dict | None = None) -> None:
     from .io import lens_toml_text, read_prescription, write_text_atomic
 
-    prescription = read_prescription(source)
-    if target.lower().endswith(".zmx"):
+    lower = target.lower()
+    if not lower.endswith((".zmx", ".toml")):
+        raise ValueError(f"target must end in .toml or .zmx, got {target!r}")
+    prescription = read_prescription(source, **(options or {}))
+    if lower.endswith(".zmx"):
         from .io import zmx_text
 
         write_text_atomic(target, zmx_text(prescription))
-    elif target.lower().endswith(".toml"):
-        write_text_atomic(target, lens_toml_text(prescription))
     else:
-        raise ValueError(f"target must end in .toml or .zmx, got {target!r}")
+        write_text_atomic(target, lens_toml_text(prescription))
+    derived = [k for k, s in enumerate(prescription.surfaces) if math.isnan(s.semi_aperture_mm)]
+    if derived:
+        print(f"note: the semi-apertures of surfaces {derived} are not in the file: written as 'auto', derived when the lens is loaded", file=sys.stderr)
     print(f"wrote {target}")
 
 

@@ -186,6 +186,18 @@ def _mean_weights(grid: np.ndarray) -> np.ndarray:
     return w / (grid[-1] - grid[0])
 
 
+def colour_space_chromaticities(colour_space: str) -> tuple[float, float, float, float, float, float, float, float]:
+    """CIE xy of the red, green and blue primaries and of the white point of an output colour
+    space (colour-science's values): the eight numbers of an OpenEXR ``chromaticities`` attribute,
+    in its order (red x, y, green x, y, blue x, y, white x, y). ACEScg: the AP1 primaries with the
+    ACES white (about D60); linear sRGB: the Rec. 709 primaries with D65."""
+    import colour
+
+    space = colour.RGB_COLOURSPACES[_COLOUR_SCIENCE_NAMES[canonical_colour_space(colour_space)]]
+    values = [float(v) for v in np.asarray(space.primaries, dtype=np.float64).ravel()] + [float(v) for v in np.asarray(space.whitepoint, np.float64)]
+    return tuple(values)  # type: ignore[return-value]
+
+
 def _space_matrices(colour_space: str) -> tuple[np.ndarray, np.ndarray]:
     """``(RGB_to_XYZ, whitepoint XYZ)`` of an output space, float64.
 

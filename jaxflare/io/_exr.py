@@ -17,7 +17,8 @@ Pixel types
 -----------
 ``pixel_type="half"`` (float16, the compositing norm: half the size, ~3 significant digits, range
 ±65504) or ``"float"`` (float32). No NaN or infinity is ever written: a non-finite input value is a
-``ValueError``. For half, finite values beyond ±65504 (which float16 would turn into infinities) are
+``ValueError``. ``layer_pixel_types`` stores chosen layers otherwise (e.g. a float32 variance
+layer in a half file: small values that float16 would flush to zero). For half, finite values beyond ±65504 (which float16 would turn into infinities) are
 clipped to ±65504 and the number of clipped values is recorded in the integer header attribute
 ``jaxflare/half_clipped_values`` (written, possibly 0, on every half file). For float, values beyond
 the float32 range are a ``ValueError``.
@@ -30,6 +31,13 @@ are a ``ValueError`` rather than silently wrapped), ``float`` as OpenEXR *float*
 32-bit (about 7 significant digits; pass a string or put it in a dict for full precision), and
 ``dict``/``list``/``tuple`` values as JSON-encoded strings. :func:`read_exr` returns strings as
 strings; JSON is not decoded automatically (``json.loads`` the attributes you know are JSON).
+
+Colour
+------
+``chromaticities`` (the CIE xy of the red, green and blue primaries and the white point, eight
+numbers) is written as OpenEXR's standard ``chromaticities`` attribute, which compositors
+(Nuke, OpenImageIO, ...) read to know the pixels' colour space; ``white_luminance`` (cd/m^2 of
+RGB 1, 1, 1) as ``whiteLuminance``, only when the pixels are in photometric units.
 
 Why contiguous
 --------------
@@ -96,6 +104,8 @@ _RESERVED_ATTRIBUTES = frozenset(
         "version",
         "chunkCount",
         "maxSamplesPerPixel",
+        "chromaticities",
+        "whiteLuminance",
         HALF_CLIPPED_ATTRIBUTE,
     }
 )
@@ -140,15 +150,25 @@ def _prepare_header(header: Mapping[str, object] | None) -> dict[str, object]:
     return prepared
 
 
-def _prepare_layers(layers: Mapping[str, np.ndarray], pixel_type: str) -> tuple[dict[str, np.ndarray], int]:
+def _prepare_layers(
+    layers: Mapping[str, np.ndarray], pixel_type: str, layer_pixel_types: Mapping[str, str] | None = None
+) -> tuple[dict[str, np.ndarray], int]:
     """Validate the layers and return {channel name: contiguous 2-D array} and the half-clip count."""
     if not layers:
         raise ValueError("write_exr needs at least one layer")
-    dtype = _PIXEL_TYPES[pixel_type]
+    overrides: dict[str, str] = {}
+    for name, kind in (layer_pixel_types or {}).items():
+        if name not in layers:
+            raise ValueError(f"layer_pixel_types names layer {name!r}, which is not among the layers {sorted(layers)}")
+        if not isinstance(kind, str) or kind.lower() not in _PIXEL_TYPES:
+            raise ValueError(f"layer_pixel_types[{name!r}] must be one of {sorted(_PIXEL_TYPES)}, got {kind!r}")
+        overrides[name] = kind.lower()
     channels: dict[str, np.ndarray] = {}
     clipped_total = 0
     reference: tuple[str, tuple[int, int]] | None = None
     for name, image in layers.items():
+        layer_type = overrides.get(name, pixel_type)
+        dtype = _PIXEL_TYPES[layer_type]
         if not isinstance(name, str) or (name and not _LAYER_NAME.fullmatch(name)):
             raise ValueError(f"invalid layer name {name!r}: use letters, digits, '_' and '-' only ('' is the default layer)")
         array = np.asarray(image)
@@ -170,7 +190,7 @@ def _prepare_layers(layers: Mapping[str, np.ndarray], pixel_type: str) -> tuple[
         non_finite = int(np.count_nonzero(~np.isfinite(array)))
         if non_finite:
             raise ValueError(f"layer {name!r} has {non_finite} non-finite (NaN or Inf) value(s); EXR output must be finite")
-        if pixel_type == "half":
+        if layer_type == "half":
             too_big = np.abs(array) > HALF_MAX
             clipped = int(np.count_nonzero(too_big))
             if clipped:
@@ -193,12 +213,17 @@ def write_exr(
     pixel_type: str = "half",
     compression: str = "zip",
     header: Mapping[str, object] | None = None,
+    layer_pixel_types: Mapping[str, str] | None = None,
+    chromaticities: tuple[float, ...] | None = None,
+    white_luminance: float | None = None,
 ) -> None:
     """Write ``layers`` ({name: (H, W, C) array}) to a single-part scanline EXR at ``path``, atomically.
 
-    See the module docstring for the channel naming, pixel types and header attribute encoding.
-    Everything is validated before anything touches the disk; an error while writing leaves an
-    existing ``path`` untouched.
+    See the module docstring for the channel naming, pixel types (``layer_pixel_types``: {layer:
+    "half" or "float"} for layers stored unlike ``pixel_type``), header attribute encoding and
+    the colour attributes (``chromaticities``: 8 numbers, red/green/blue/white x and y;
+    ``white_luminance``). Everything is validated before anything touches the disk; an error
+    while writing leaves an existing ``path`` untouched.
     """
     if not isinstance(pixel_type, str) or pixel_type.lower() not in _PIXEL_TYPES:
         raise ValueError(f"pixel_type must be one of {sorted(_PIXEL_TYPES)}, got {pixel_type!r}")
@@ -206,8 +231,17 @@ def write_exr(
     if not isinstance(compression, str) or compression.lower() not in COMPRESSIONS:
         raise ValueError(f"compression must be one of {', '.join(COMPRESSIONS)} (case-insensitive), got {compression!r}")
     attributes = _prepare_header(header)
-    channels, clipped = _prepare_layers(layers, pixel_type)
-    if pixel_type == "half":
+    if chromaticities is not None:
+        values = tuple(float(v) for v in chromaticities)
+        if len(values) != 8 or not all(np.isfinite(v) and -1.0 < v < 2.0 for v in values):
+            raise ValueError(f"chromaticities must be 8 finite CIE xy values (red, green, blue, white), got {chromaticities!r}")
+        attributes["chromaticities"] = values
+    if white_luminance is not None:
+        if not (np.isfinite(white_luminance) and white_luminance > 0):
+            raise ValueError(f"white_luminance must be a positive number (cd/m^2), got {white_luminance!r}")
+        attributes["whiteLuminance"] = float(white_luminance)
+    channels, clipped = _prepare_layers(layers, pixel_type, layer_pixel_types)
+    if pixel_type == "half" or "half" in (layer_pixel_types or {}).values():
         attributes[HALF_CLIPPED_ATTRIBUTE] = clipped
     attributes["compression"] = COMPRESSIONS[compression.lower()]
     attributes["type"] = OpenEXR.scanlineimage
@@ -228,6 +262,8 @@ def read_exr_channels(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], d
     path = os.fspath(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"no such EXR file: {path!r}")
+    if not os.path.isfile(path):
+        raise ValueError(f"{path!r} is not an OpenEXR file (a directory, device, pipe or socket)")
     with open(path, "rb") as handle:
         magic = handle.read(4)
     if magic != _EXR_MAGIC:

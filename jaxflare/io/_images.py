@@ -167,6 +167,10 @@ def read_linear_image(
     extensions = tuple(PILLOW_EXTENSIONS + EXR_EXTENSIONS) if extensions is None else extensions
     path = os.fspath(path)
     if not os.path.isfile(path):
+        if os.path.isdir(path):
+            raise ValueError(f"{what} {path!r} is a directory, not an image file")
+        if os.path.exists(path):
+            raise ValueError(f"{what} {path!r} is not a regular file (a device, pipe or socket), so it is not read as an image")
         raise FileNotFoundError(f"no such {what} file: {path!r}")
     extension = os.path.splitext(path)[1].lower()
     if extension in extensions and extension in EXR_EXTENSIONS:

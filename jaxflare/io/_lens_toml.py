@@ -11,7 +11,12 @@ from collections.abc import Mapping
 from typing import Any
 
 from ..optics import (
+    COATING_INDEX_RANGE,
     DEFAULT_COATING,
+    F_NUMBER_RANGE,
+    MAX_COATING_THICKNESS_NM,
+    MAX_LENGTH_MM,
+    MAX_SURFACES,
     SURFACE_KINDS,
     UNCOATED,
     CoatingLayerSpec,
@@ -20,7 +25,10 @@ from ..optics import (
     LensPrescription,
     MediumSpec,
     SurfaceSpec,
+    check_blades,
+    check_prescription,
 )
+from ._text_input import read_text_file
 
 _TOP_LEVEL_KEYS = {
     "name": "lens name (string)",
@@ -28,6 +36,7 @@ _TOP_LEVEL_KEYS = {
     "focal_length_mm": "stated focal length in mm (number, or a list for zooms)",
     "focal_length_plane": "meridian of the stated focal length, \"y\" (default) or \"x\"",
     "f_number": "stated f-number (number)",
+    "entrance_pupil_diameter_mm": "stated entrance pupil diameter in mm, instead of an f-number (number)",
     "sensor_mm": "[width, height] in mm",
     "aperture_blades": "number of iris blades, 0 = circular",
     "aperture_rotation_deg": "iris rotation in degrees",
@@ -87,7 +96,10 @@ class _Where:
         return f"{self.filename}: surface {index}"
 
 
-def _number(value: Any, where: str, key: str, *, positive: bool = False, nonnegative: bool = False) -> float:
+def _number(
+    value: Any, where: str, key: str, *, positive: bool = False, nonnegative: bool = False, maximum: float | None = None,
+    minimum: float | None = None,
+) -> float:
     if not _is_number(value):
         raise LensFormatError(f"{where}: '{key}' must be a number, got {value!r}")
     number = float(value)
@@ -97,6 +109,10 @@ def _number(value: Any, where: str, key: str, *, positive: bool = False, nonnega
         raise LensFormatError(f"{where}: '{key}' must be > 0, got {number}")
     if nonnegative and number < 0:
         raise LensFormatError(f"{where}: '{key}' must be >= 0, got {number}")
+    if minimum is not None and number < minimum:
+        raise LensFormatError(f"{where}: '{key}' must be >= {minimum:g}, got {number:g}")
+    if maximum is not None and number > maximum:
+        raise LensFormatError(f"{where}: '{key}' must be <= {maximum:g}, got {number:g}")
     return number
 
 
@@ -116,18 +132,20 @@ def _parse_coating(value: Any, where: str) -> CoatingSpec | None:
             raise LensFormatError(f"{where}: unknown coating keys {sorted(unknown)}; valid: quarter_wave, wavelength_nm, layers, name")
         name = str(value.get("name", ""))
         if "quarter_wave" in value:
-            index = _number(value["quarter_wave"], where, "coating.quarter_wave", positive=True)
-            wavelength = _number(value.get("wavelength_nm", 550.0), where, "coating.wavelength_nm", positive=True)
+            index = _number(value["quarter_wave"], where, "coating.quarter_wave", minimum=COATING_INDEX_RANGE[0], maximum=COATING_INDEX_RANGE[1])
+            wavelength = _number(value.get("wavelength_nm", 550.0), where, "coating.wavelength_nm", minimum=100.0, maximum=20000.0)
             return CoatingSpec.quarter_wave(index, wavelength, name)
         if "layers" in value:
+            if not isinstance(value["layers"], list):
+                raise LensFormatError(f"{where}: coating 'layers' must be a list of [index, thickness_nm] pairs, got {value['layers']!r}")
             layers = []
             for k, layer in enumerate(value["layers"]):
                 if not (isinstance(layer, list) and len(layer) == 2):
                     raise LensFormatError(f"{where}: coating layer {k} must be [index, thickness_nm], got {layer!r}")
                 layers.append(
                     CoatingLayerSpec(
-                        _number(layer[0], where, f"coating layer {k} index", positive=True),
-                        _number(layer[1], where, f"coating layer {k} thickness_nm", nonnegative=True),
+                        _number(layer[0], where, f"coating layer {k} index", minimum=COATING_INDEX_RANGE[0], maximum=COATING_INDEX_RANGE[1]),
+                        _number(layer[1], where, f"coating layer {k} thickness_nm", nonnegative=True, maximum=MAX_COATING_THICKNESS_NM),
                     )
                 )
             return CoatingSpec(tuple(layers), name)
@@ -155,25 +173,27 @@ def _parse_surface(row: Any, where: str) -> SurfaceSpec:
         radius = _number(radius_value, where, "radius")
         if radius == 0.0:
             radius = math.inf
+        elif abs(radius) < 1e-3:
+            raise LensFormatError(f"{where}: 'radius' {radius:g} mm is too small for a lens surface (|radius| >= 0.001 mm, or 0 / \"flat\" for a plane)")
 
     thickness_value = row["thickness"]
     if isinstance(thickness_value, list):
         if not thickness_value:
             raise LensFormatError(f"{where}: 'thickness' list is empty")
-        thicknesses = tuple(_number(t, where, "thickness", nonnegative=True) for t in thickness_value)
+        thicknesses = tuple(_number(t, where, "thickness", nonnegative=True, maximum=MAX_LENGTH_MM) for t in thickness_value)
     else:
-        thicknesses = (_number(thickness_value, where, "thickness", nonnegative=True),)
+        thicknesses = (_number(thickness_value, where, "thickness", nonnegative=True, maximum=MAX_LENGTH_MM),)
 
     semi = row["semi_aperture"]
     if isinstance(semi, str) and semi.strip().lower() in ("auto", "derive"):
         semi_aperture = math.nan
     else:
-        semi_aperture = _number(semi, where, "semi_aperture", positive=True)
+        semi_aperture = _number(semi, where, "semi_aperture", positive=True, maximum=MAX_LENGTH_MM)
 
     kind = row.get("kind", "spherical")
     if kind not in SURFACE_KINDS:
         raise LensFormatError(f"{where}: unknown kind {kind!r}; valid: {', '.join(SURFACE_KINDS)}")
-    conic = _number(row.get("conic", 0.0), where, "conic")
+    conic = _number(row.get("conic", 0.0), where, "conic", minimum=-1e4, maximum=1e4)
     aspheric = row.get("aspheric", [])
     if not isinstance(aspheric, list):
         raise LensFormatError(f"{where}: 'aspheric' must be a list [A4, A6, ...]")
@@ -192,8 +212,8 @@ def _parse_surface(row: Any, where: str) -> SurfaceSpec:
     v_d = row.get("v_d", None)
     if (n_d is None) != (v_d is None) and medium_name in (None, "air"):
         raise LensFormatError(f"{where}: a model glass needs both 'n_d' and 'v_d'")
-    n_d = None if n_d is None else _number(n_d, where, "n_d", positive=True)
-    v_d = None if v_d is None else _number(v_d, where, "v_d", positive=True)
+    n_d = None if n_d is None else _number(n_d, where, "n_d", minimum=1.0, maximum=4.0)
+    v_d = None if v_d is None else _number(v_d, where, "v_d", positive=True, maximum=1000.0)
     if medium_name is not None and not isinstance(medium_name, str):
         raise LensFormatError(f"{where}: 'medium' must be a string, got {medium_name!r}")
     if medium_name is None or medium_name.strip().lower() == "air":
@@ -234,6 +254,8 @@ def parse_lens_toml(text: str, filename: str = "<string>") -> LensPrescription:
         raise LensFormatError(f"{filename}: unknown key(s) {sorted(unknown)}; valid keys: {', '.join(sorted(_TOP_LEVEL_KEYS))}")
     if "surfaces" not in data or not isinstance(data["surfaces"], list) or not data["surfaces"]:
         raise LensFormatError(f"{filename}: missing 'surfaces' (a non-empty list of surface rows)")
+    if len(data["surfaces"]) > MAX_SURFACES:
+        raise LensFormatError(f"{filename}: {len(data['surfaces'])} surfaces; a lens may have at most {MAX_SURFACES}")
     where = _Where(filename, _surface_line_numbers(text))
     surfaces = tuple(_parse_surface(row, where.surface(k)) for k, row in enumerate(data["surfaces"]))
 
@@ -255,6 +277,9 @@ def parse_lens_toml(text: str, filename: str = "<string>") -> LensPrescription:
         raise LensFormatError(f"{filename}: exactly one surface must have 'stop = true', found {len(stops)}")
 
     name = data.get("name", os.path.splitext(os.path.basename(filename))[0])
+    for key in ("name", "source", "notes"):
+        if key in data and not isinstance(data[key], str):
+            raise LensFormatError(f"{filename}: '{key}' must be a string, got {data[key]!r}")
     focal = data.get("focal_length_mm")
     stated_focal_lengths: tuple[float, ...] = ()
     stated_focal: float | None = None
@@ -269,17 +294,17 @@ def parse_lens_toml(text: str, filename: str = "<string>") -> LensPrescription:
     if focal_plane not in ("x", "y"):
         raise LensFormatError(f"{filename}: 'focal_length_plane' must be \"x\" or \"y\", got {focal_plane!r}")
     f_number = data.get("f_number")
-    f_number = None if f_number is None else _number(f_number, filename, "f_number", positive=True)
+    f_number = None if f_number is None else _number(f_number, filename, "f_number", minimum=F_NUMBER_RANGE[0], maximum=F_NUMBER_RANGE[1])
+    pupil = data.get("entrance_pupil_diameter_mm")
+    pupil = None if pupil is None else _number(pupil, filename, "entrance_pupil_diameter_mm", positive=True, maximum=MAX_LENGTH_MM)
     sensor = data.get("sensor_mm", [36.0, 24.0])
     if not (isinstance(sensor, list) and len(sensor) == 2):
         raise LensFormatError(f"{filename}: 'sensor_mm' must be [width, height]")
-    blades = data.get("aperture_blades", 0)
-    if not isinstance(blades, int) or isinstance(blades, bool) or blades < 0 or blades in (1, 2):
-        raise LensFormatError(f"{filename}: 'aperture_blades' must be 0 (circular) or an integer >= 3, got {blades!r}")
+    blades = check_blades(data.get("aperture_blades", 0), filename)
     catalogs = data.get("glass_catalogs", [])
     if not isinstance(catalogs, list) or not all(isinstance(c, str) for c in catalogs):
         raise LensFormatError(f"{filename}: 'glass_catalogs' must be a list of catalog names")
-    return LensPrescription(
+    prescription = LensPrescription(
         name=str(name),
         surfaces=surfaces,
         source=str(data.get("source", "")),
@@ -287,26 +312,24 @@ def parse_lens_toml(text: str, filename: str = "<string>") -> LensPrescription:
         stated_focal_lengths_mm=stated_focal_lengths,
         stated_focal_length_plane=focal_plane,
         stated_f_number=f_number,
-        sensor_width_mm=_number(sensor[0], filename, "sensor_mm[0]", positive=True),
-        sensor_height_mm=_number(sensor[1], filename, "sensor_mm[1]", positive=True),
+        entrance_pupil_diameter_mm=pupil,
+        sensor_width_mm=_number(sensor[0], filename, "sensor_mm[0]", positive=True, maximum=1000.0),
+        sensor_height_mm=_number(sensor[1], filename, "sensor_mm[1]", positive=True, maximum=1000.0),
         aperture_blades=blades,
         aperture_rotation_deg=_number(data.get("aperture_rotation_deg", 0.0), filename, "aperture_rotation_deg"),
-        design_wavelength_nm=_number(data.get("design_wavelength_nm", 587.56), filename, "design_wavelength_nm", positive=True),
+        design_wavelength_nm=_number(data.get("design_wavelength_nm", 587.56), filename, "design_wavelength_nm", minimum=100.0, maximum=20000.0),
         notes=str(data.get("notes", "")),
         glass_catalogs=tuple(c.upper() for c in catalogs),
         path=filename,
     )
+    check_prescription(prescription)
+    return prescription
 
 
 def read_lens_toml(path: str | os.PathLike) -> LensPrescription:
     """Read a lens file in the jaxflare TOML format."""
     path = os.fspath(path)
-    try:
-        with open(path, encoding="utf-8") as handle:
-            text = handle.read()
-    except OSError as error:
-        raise LensFormatError(f"{path}: cannot read lens file: {error.strerror}") from None
-    return parse_lens_toml(text, path)
+    return parse_lens_toml(read_text_file(path, "lens file", LensFormatError), path)
 
 
 def _toml_number(value: float) -> str:
@@ -330,6 +353,8 @@ def lens_toml_text(prescription: LensPrescription) -> str:
         lines.append(f"focal_length_plane = {quote(prescription.stated_focal_length_plane)}")
     if prescription.stated_f_number is not None:
         lines.append(f"f_number = {_toml_number(prescription.stated_f_number)}")
+    if prescription.entrance_pupil_diameter_mm is not None:
+        lines.append(f"entrance_pupil_diameter_mm = {_toml_number(prescription.entrance_pupil_diameter_mm)}")
     lines.append(f"sensor_mm = [{_toml_number(prescription.sensor_width_mm)}, {_toml_number(prescription.sensor_height_mm)}]")
     lines.append(f"aperture_blades = {prescription.aperture_blades}")
     lines.append(f"aperture_rotation_deg = {_toml_number(prescription.aperture_rotation_deg)}")

@@ -93,10 +93,26 @@ def tone_map(
     return np.clip(np.round(encoded * 255.0), 0, 255).astype(np.uint8)
 
 
+PNG_SOFTWARE = "jaxflare"
+"""The PNG ``Software`` text of the previews :func:`write_png` writes (see :func:`is_jaxflare_png`)."""
+
+
+def is_jaxflare_png(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a PNG preview written by :func:`write_png` (its ``Software`` text)."""
+    try:
+        from PIL import Image
+
+        with Image.open(path) as image:
+            return image.format == "PNG" and str(image.info.get("Software", "")).startswith(PNG_SOFTWARE)
+    except (OSError, ValueError):
+        return False
+
+
 def write_png(path: str | os.PathLike, image_uint8: np.ndarray) -> None:
     """Write an ``(H, W, 3)`` uint8 image (e.g. from :func:`tone_map`) to ``path`` as PNG, atomically.
 
-    matplotlib stores it as RGBA with an opaque alpha channel.
+    matplotlib stores it as RGBA with an opaque alpha channel; the PNG's ``Software`` text is
+    ``jaxflare`` (:func:`is_jaxflare_png`).
     """
     import matplotlib.image
 
@@ -104,4 +120,4 @@ def write_png(path: str | os.PathLike, image_uint8: np.ndarray) -> None:
     if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
         raise ValueError(f"write_png expects an (H, W, 3) uint8 array, got shape {image.shape} and dtype {image.dtype}")
     with atomic_output_path(path) as temporary:
-        matplotlib.image.imsave(temporary, np.ascontiguousarray(image), format="png")
+        matplotlib.image.imsave(temporary, np.ascontiguousarray(image), format="png", metadata={"Software": PNG_SOFTWARE})

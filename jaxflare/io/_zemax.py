@@ -5,19 +5,45 @@ values. System records come first (``VERS``, ``MODE``, ``UNIT``, ``GCAT``, ``FNU
 fields, wavelengths, ...), then one ``SURF n`` block per surface whose records are indented, then
 the merit function, tolerance and multi-configuration (``MNUM`` + operand rows) sections.
 OpticStudio writes UTF-16 (little-endian, with a BOM) by default; older versions and other
-programs write ASCII / UTF-8. There is no current public specification, so the reader below only
-interprets what it has been checked against and refuses the rest:
+programs write ASCII / UTF-8. There is no current public specification. The reader sorts records
+into three kinds:
 
-* every keyword is either interpreted, on an explicit list of records that cannot change the
-  sequential optics (``_HARMLESS_SYSTEM_KEYWORDS`` / ``_HARMLESS_SURFACE_KEYWORDS`` /
-  ``_HARMLESS_CONFIG_OPERANDS``), or a :class:`LensFormatError` naming the file, line and keyword.
-  The one positional exception: rows after the surface list and before ``MNUM`` are merit-function
-  (and tolerance) operand rows, several hundred operand names that only evaluate the design; any
-  four-character keyword there is accepted, except the configuration operands that change the
-  optics (``_OPTICAL_CONFIG_OPERANDS``), which are refused wherever they appear;
-* constructs we cannot model (mirrors, coordinate breaks, tilts/decenters, obscurations and
-  non-circular apertures, true toroids, gradient index, non-sequential parts, glass offsets,
-  thickness solves that would need a ray trace per zoom position, ...) are errors, never dropped.
+* records it interprets (surface shapes, thicknesses, glasses, apertures, stop, units, system
+  aperture, wavelengths, zoom configurations);
+* records that cannot change the sequential geometry or the materials, skipped: display, report,
+  ray-aiming, field, tolerance, merit-function, file-history and authoring records (``AUTH``,
+  ``IWDP``, ``SSID``, ``LUID``, ``EERA``, ``STUD``, ``FCOM``, ``FSVY``, ``DBDT``, ``OEMA``, ...).
+  Beyond the routine ones every file has (``_ROUTINE_SYSTEM_KEYWORDS``), the skipped keywords are
+  listed in the prescription's ``notes``; so are keywords this reader does not know, with their
+  lines, which are skipped too (OpticStudio's records that change the optics are all known here);
+* constructs that change the optics but cannot be modelled (mirrors, coordinate breaks,
+  tilts/decenters, obscurations and non-circular apertures, true toroids, gradient index,
+  non-sequential parts, glass offsets, configuration operands other than thicknesses, thickness
+  solves that would need a ray trace per zoom position, ...): a :class:`LensFormatError` naming
+  the file, the line and the keyword, never dropped.
+
+Apertures follow Zemax's own meaning. ``DIAM`` is a semi-diameter (often computed by
+OpticStudio), and OpticStudio clips rays only where a surface has an aperture: ``CLAP`` (circular
+aperture, its maximum radius) or ``FLAP`` (floating aperture, at the semi-diameter). In jaxflare
+every semi-aperture clips, so:
+
+* a surface with ``CLAP`` clips at its maximum radius, one with ``FLAP`` at its ``DIAM``;
+* the stop's ``DIAM`` is the stop radius (OpticStudio sizes it from the system aperture);
+* a refracting surface (the index changes) clips at the edge of its glass: the larger of its
+  ``DIAM`` and its mechanical semi-diameter ``MEMA``;
+* a dummy surface (the same medium on both sides, not the stop, no ``CLAP``/``FLAP``) has no
+  effect on the rays at all, so it is dropped and its thickness added to the surface before
+  (the notes list them);
+* the system aperture is kept: ``FNUM`` as the stated f-number, ``ENPD`` as the entrance pupil
+  diameter (:attr:`LensPrescription.entrance_pupil_diameter_mm`), ``FLOA`` as "the stop's own
+  semi-diameter". Semi-apertures the file lacks are ``math.nan``, derived when the lens is built
+  from that system aperture and the marginal and chief rays (reported in the lens notes).
+
+Glass records: a model glass (``GLAS ___BLANK 1 0 nd vd ...`` or solve type 1) gives n_d and V_d;
+a catalog glass gives its name only: the model columns OpticStudio keeps beside a catalog glass
+are leftovers of an earlier model glass, not values the design states. A name the catalogs lack
+is an error when the lens is built, unless it is mapped with ``glass_aliases`` (see
+:func:`jaxflare.load_lens`) or a known suffix rule applies (``_MOLD``).
 
 Conventions of the result are those of :mod:`jaxflare.optics._prescription` (millimetres, the object
 surface ``SURF 0`` and the image surface dropped, the last thickness is the distance to the
@@ -33,8 +59,9 @@ import os
 import re
 from decimal import Decimal, InvalidOperation
 
-from ._atomic import write_bytes_atomic
 from ..optics import AIR, LensFormatError, LensPrescription, MediumSpec, SurfaceSpec
+from ._atomic import write_bytes_atomic
+from ._text_input import check_text, read_input_bytes
 
 __all__ = ["decode_zmx_bytes", "parse_zmx", "read_zmx", "write_zmx", "zmx_text"]
 
@@ -44,7 +71,7 @@ _UNIT_SCALE_TO_MM = {"MM": Decimal(1), "CM": Decimal(10), "IN": Decimal("25.4"),
 
 _SURFACE_TYPES = ("STANDARD", "EVENASPH", "TOROIDAL")
 
-_HARMLESS_SYSTEM_KEYWORDS = frozenset(
+_ROUTINE_SYSTEM_KEYWORDS = frozenset(
     """
     VERS PFIL LANG ENVD GFAC RAIM PUSH SDMA OMMA FTYP ROPD HYPR PICB
     XFLN YFLN XFLD YFLD FWGN FWGT VDXN VDYN VCXN VCYN VANN ZVDX ZVDY ZVCX ZVCY ZVAN
@@ -52,19 +79,33 @@ _HARMLESS_SYSTEM_KEYWORDS = frozenset(
     MNCA MNEA MNCG MNEG MXCA MXEA MXCG MXEG RGLA TRAC TCMM EFFL
     """.split()
 )
-"""System records that do not change the sequential optics: file version, display/report flags,
-ray aiming, field definitions and vignetting factors, wavelength weights, polarization, global
-reference surface, glass-substitution and default-merit-function settings, non-sequential
-defaults, coating/scatter file names, notes on the merit function (``BLNK``), tolerances (``TOL``).
-``ENVD`` (temperature and pressure) is accepted too: the glass models here are at 20 degC, 1 atm."""
+"""System records every OpticStudio file has that do not change the sequential optics: file
+version, display/report flags, ray aiming, field definitions and vignetting factors, wavelength
+weights, polarization, global reference surface, glass-substitution and default-merit-function
+settings, non-sequential defaults, coating/scatter file names, notes on the merit function
+(``BLNK``), tolerances (``TOL``). Skipped without a note. ``ENVD`` (temperature and pressure) is
+accepted too: the glass models here are at 20 degC, 1 atm."""
 
-_HARMLESS_SURFACE_KEYWORDS = frozenset("FIMP HIDE MIRR SLAB POPS MEMA SCOL TCED VPAR VCON VDSZ PPAR PKUP".split())
+_HARMLESS_SYSTEM_KEYWORDS = frozenset(
+    """
+    AUTH IWDP LUID EERA STUD FCOM FSVY DBDT
+    """.split()
+)
+"""System records of newer OpticStudio versions (2020-2024) that do not change the sequential
+optics: author, image-window and lens IDs, encircled-energy and student-edition settings, file
+comments, the file-survey flag and the file's date and history (``DBDT``). Skipped and listed in
+the notes."""
+
+_HARMLESS_SURFACE_KEYWORDS = frozenset("FIMP HIDE MIRR SLAB POPS SCOL TCED VPAR VCON VDSZ PPAR PKUP SSID OEMA".split())
 """Surface records that do not change the optics: import flags, drawing (``HIDE``, ``SLAB``,
 ``SCOL``, ``MIRR`` = mirror *substrate* drawn for mirrors, present on every surface in files
 OpticStudio writes; a reflecting surface is ``GLAS MIRROR``), physical-optics settings (``POPS``),
-the mechanical semi-diameter (``MEMA``), thermal expansion data (``TCED``; nothing here is
-thermal), optimization variable flags (``V...``) and pickups of
-curvature / parameters, whose resolved values are what ``CURV`` / ``PARM`` store."""
+surface IDs (``SSID``), the edge-aperture drawing mode (``OEMA``), thermal expansion data (``TCED``;
+nothing here is thermal), optimization variable flags (``V...``) and pickups of curvature /
+parameters, whose resolved values are what ``CURV`` / ``PARM`` store."""
+
+_ROUTINE_SURFACE_KEYWORDS = frozenset("FIMP HIDE MIRR SLAB POPS".split())
+"""Surface records on every surface of an OpticStudio file: skipped without a note."""
 
 _THICKNESS_SOLVES = frozenset("PZUP TCOM TOLE MAZH CAZH EDGE".split())
 """Thickness solves and pickups. ``DISZ`` stores the solved value of the active configuration, so
@@ -83,7 +124,7 @@ _NONCIRCULAR_APERTURES = {
 }
 
 _SURFACE_KEYWORDS = (
-    frozenset("TYPE CURV DISZ GLAS DIAM STOP CONI PARM XDAT YDAT COMM COAT CLAP FLAP OBDC SCBD GRIN".split())
+    frozenset("TYPE CURV DISZ GLAS DIAM MEMA STOP CONI PARM XDAT YDAT COMM COAT CLAP FLAP OBDC SCBD GRIN".split())
     | _HARMLESS_SURFACE_KEYWORDS
     | _THICKNESS_SOLVES
     | frozenset(_NONCIRCULAR_APERTURES)
@@ -103,15 +144,22 @@ _OPTICAL_CONFIG_OPERANDS = frozenset(
 conic, surface parameters, semi-diameter, model-glass data, ignored surfaces, environment,
 coatings, tilts/decenters, apertures, non-sequential objects): refused."""
 
+_INTERPRETED_SYSTEM_KEYWORDS = frozenset("SURF MODE UNIT NAME NOTE COMM GCAT FNUM ENPD OBNA FLOA ISNA WAVM WAVL PWAV MNUM THIC MOFF".split())
+
+_NON_SEQUENTIAL_KEYWORDS = frozenset("NSOH NSOD NSOP NSCS NSOA NSOO NSOQ NSOS NSOU NSOV NSOW".split())
+
+_KNOWN_SYSTEM_KEYWORDS = (
+    _INTERPRETED_SYSTEM_KEYWORDS | _ROUTINE_SYSTEM_KEYWORDS | _HARMLESS_SYSTEM_KEYWORDS | _HARMLESS_CONFIG_OPERANDS
+    | _OPTICAL_CONFIG_OPERANDS | _NON_SEQUENTIAL_KEYWORDS
+) - {"COMM"}
+"""System keywords: in a file whose surface records are not indented, one of these ends a SURF block."""
+
 _WRITER_NOTE_PREFIX = "jaxflare:"
 """``NOTE`` lines starting with this are written by :func:`zmx_text` for its own reader (exact
 radii, what was not exported); they are not added to ``notes`` on import."""
 
 _RADIUS_HINT = re.compile(r"^jaxflare:\s+radius\s+SURF\s+(\d+)\s+(\S+)\s*$")
-
-_PLACEHOLDER_ND_VD = (1.5, 40.0)
-"""OpticStudio writes the model-glass columns of a catalog glass (``GLAS N-BK7 0 0 nd vd ...``)
-with its defaults 1.5 / 40 when they were never set; those are not values the design states."""
+_STATED_GLASS_HINT = re.compile(r"^jaxflare:\s+stated\s+SURF\s+(\d+)\s+n_d\s+(\S+)\s+v_d\s+(\S+)\s*$")
 
 # ----------------------------------------------------------------------------- decoding
 
@@ -119,7 +167,12 @@ with its defaults 1.5 / 40 when they were never set; those are not values the de
 def decode_zmx_bytes(data: bytes, filename: str = "<bytes>") -> str:
     """Decode the bytes of a ``.zmx`` file: UTF-16 with a BOM (LE or BE, OpticStudio's default),
     UTF-16 without a BOM (detected by its NUL bytes), UTF-8 with or without a BOM, and finally
-    Windows-1252 for old 8-bit files."""
+    Windows-1252 for old 8-bit files. Text with control characters (a binary file) is a
+    :class:`LensFormatError` naming the line."""
+    return check_text(_decode_zmx(data, filename), filename, ".zmx file", LensFormatError)
+
+
+def _decode_zmx(data: bytes, filename: str) -> str:
     try:
         if data.startswith(codecs.BOM_UTF8):
             return data[len(codecs.BOM_UTF8) :].decode("utf-8")
@@ -162,7 +215,9 @@ class _RawSurface:
     disz: _Rec | None = None
     glas: _Rec | None = None
     diam: _Rec | None = None
+    mema: _Rec | None = None
     clap: _Rec | None = None
+    flap: _Rec | None = None
     coni: _Rec | None = None
     stop: _Rec | None = None
     comment: str | None = None
@@ -182,6 +237,9 @@ class _Reader:
         self.name = ""
         self.notes: list[str] = []
         self.radius_hints: dict[int, str] = {}
+        self.stated_glass: dict[int, tuple[str, str]] = {}
+        self.note_paragraph = ""
+        """n_d and V_d that :func:`zmx_text` recorded for a catalog glass (``NOTE jaxflare: stated``)."""
         self.catalogs: list[str] = []
         self.f_number: float | None = None
         self.wavelengths: dict[int, _Rec] = {}
@@ -189,6 +247,12 @@ class _Reader:
         self.primary_wavelength: _Rec | None = None
         self.mnum: _Rec | None = None
         self.thic_rows: list[_Rec] = []
+        self.entrance_pupil: _Rec | None = None
+        self.aperture_kind = "FNUM"
+        self.skipped: dict[str, int] = {}
+        """Skipped known-harmless keywords (beyond the routine ones) and how often."""
+        self.unknown: dict[str, list[int]] = {}
+        """Skipped unknown keywords and their lines."""
 
     # -- helpers
 
@@ -221,9 +285,7 @@ class _Reader:
     # -- pass 1: records
 
     def read(self) -> None:
-        indented_style = any(
-            raw[:1].isspace() and raw.split(None, 1)[0].upper() in _SURFACE_KEYWORDS for raw in self.lines if raw.strip()
-        )
+        block_indented: bool | None = None  # the indentation of the current SURF block's records
         for lineno, raw in enumerate(self.lines, 1):
             stripped = raw.strip()
             if not stripped:
@@ -234,14 +296,35 @@ class _Reader:
             rec = _Rec(keyword, rest.split(), rest, lineno)
             indented = raw[:1].isspace()
             in_block = bool(self.surfaces) and not self.surfaces_closed
-            if in_block and keyword != "SURF" and (indented or (not indented_style and keyword in _SURFACE_KEYWORDS)):
-                self.surface_record(rec)
-                continue
+            if in_block and keyword != "SURF":
+                if block_indented is None and (indented or keyword in _SURFACE_KEYWORDS):
+                    block_indented = indented
+                # Files indent surface records (OpticStudio) or not (older files and other
+                # writers), some mix both: a record belongs to the block if it is indented like
+                # the block's first one, or is no system keyword in a block that is not indented.
+                if indented or (block_indented is False and keyword not in _KNOWN_SYSTEM_KEYWORDS):
+                    self.surface_record(rec)
+                    continue
             if indented and keyword in _SURFACE_KEYWORDS and keyword != "SURF":
                 raise self.error(lineno, f"{parts[0]}: surface record outside a SURF block")
             if self.surfaces and keyword != "SURF":
                 self.surfaces_closed = True
+            if keyword == "SURF":
+                block_indented = None
             self.system_record(rec, parts[0])
+        self.end_note_paragraph()
+
+    def end_note_paragraph(self) -> None:
+        text = self.note_paragraph.strip()
+        if text:
+            self.notes.append(text)
+        self.note_paragraph = ""
+
+    def skip(self, rec: _Rec, known: bool) -> None:
+        if known:
+            self.skipped[rec.keyword] = self.skipped.get(rec.keyword, 0) + 1
+        else:
+            self.unknown.setdefault(rec.keyword, []).append(rec.line)
 
     def system_record(self, rec: _Rec, written: str) -> None:
         kw = rec.keyword
@@ -265,8 +348,18 @@ class _Reader:
         elif kw in ("NOTE", "COMM"):
             text = _unquote(rec.rest)
             hint = _RADIUS_HINT.match(text)
+            stated = _STATED_GLASS_HINT.match(text)
             if hint:
                 self.radius_hints[int(hint.group(1))] = hint.group(2)
+            elif stated:
+                self.stated_glass[int(stated.group(1))] = (stated.group(2), stated.group(3))
+            elif kw == "NOTE" and re.fullmatch(r"[04](\s.*)?", rec.rest):
+                # OpticStudio's notes: "NOTE 0 text" holds up to 200 characters of a paragraph,
+                # "NOTE 4" ends the paragraph
+                if rec.rest[0] == "0":
+                    self.note_paragraph += rec.rest[2:]
+                else:
+                    self.end_note_paragraph()
             elif not text.startswith(_WRITER_NOTE_PREFIX):
                 self.notes.append(text)
         elif kw == "GCAT":
@@ -276,8 +369,18 @@ class _Reader:
             flag = self.integer(rec, 1, "f-number type") if len(rec.tokens) > 1 else 0
             # 0: image-space F/#, 1: paraxial working F/#; equal for an object at infinity in air.
             self.f_number = value if value > 0 and flag in (0, 1) else None
-        elif kw in ("ENPD", "OBNA", "FLOA", "ISNA"):
-            self.f_number = None  # the aperture is not given as an f-number
+        elif kw == "ENPD":
+            self.f_number = None
+            self.aperture_kind = "ENPD"
+            self.entrance_pupil = rec
+        elif kw == "FLOA":
+            self.f_number, self.entrance_pupil, self.aperture_kind = None, None, "FLOA"
+        elif kw == "ISNA":  # image-space numerical aperture: F/# = 1 / (2 NA) in air
+            value = self.number(rec, 0, "numerical aperture")
+            self.f_number = 1.0 / (2.0 * value) if 0.0 < value < 1.0 else None
+            self.entrance_pupil, self.aperture_kind = None, "ISNA"
+        elif kw == "OBNA":  # object-space NA: no meaning for an object at infinity
+            self.f_number, self.entrance_pupil, self.aperture_kind = None, None, "OBNA"
         elif kw == "WAVM":
             self.wavelengths[self.integer(rec, 0, "wavelength number")] = rec
         elif kw == "WAVL":
@@ -295,16 +398,23 @@ class _Reader:
                     raise self.error(rec.line, f"MOFF: configuration row names operand {operand!r}; this multi-configuration layout is not supported")
         elif kw in _OPTICAL_CONFIG_OPERANDS:
             raise self.error(rec.line, f"{written}: multi-configuration operand {kw} changes the optics per configuration; only THIC (thickness) is supported")
-        elif kw in _HARMLESS_SYSTEM_KEYWORDS or kw in _HARMLESS_CONFIG_OPERANDS:
+        elif kw in _ROUTINE_SYSTEM_KEYWORDS or kw in _HARMLESS_CONFIG_OPERANDS:
             pass
-        elif kw in ("NSOH", "NSOD", "NSOP", "NSCS", "NSOA", "NSOO", "NSOQ", "NSOS", "NSOU", "NSOV", "NSOW"):
+        elif kw in _HARMLESS_SYSTEM_KEYWORDS:
+            self.skip(rec, known=True)
+        elif kw in _NON_SEQUENTIAL_KEYWORDS:
             raise self.error(rec.line, f"{written}: non-sequential objects are not supported")
         elif kw in _SURFACE_KEYWORDS:
             raise self.error(rec.line, f"{written}: surface keyword outside a SURF block (surface records are indented)")
         elif self.surfaces_closed and self.mnum is None and re.fullmatch(r"[A-Z][A-Z0-9]{3}", kw):
             pass  # a merit-function operand row: evaluates the design, does not change it
+        elif self.mnum is not None and re.fullmatch(r"[A-Z][A-Z0-9]{3}", kw):
+            # a configuration operand row this reader does not know: it might change the optics
+            raise self.error(rec.line, f"{written}: unknown multi-configuration operand {kw!r}; only THIC (thickness) rows are supported")
+        elif re.fullmatch(r"[A-Z][A-Z0-9]{2,3}", kw):
+            self.skip(rec, known=False)
         else:
-            raise self.error(rec.line, f"{written}: unknown or unsupported keyword {kw!r}")
+            raise self.error(rec.line, f"{written[:20]!r}: not a .zmx record (a keyword of 3-4 capital letters)")
 
     def surface_record(self, rec: _Rec) -> None:
         surf = self.surfaces[-1]
@@ -324,6 +434,8 @@ class _Reader:
             surf.glas = rec
         elif kw == "DIAM":
             surf.diam = rec
+        elif kw == "MEMA":
+            surf.mema = rec
         elif kw == "CONI":
             surf.coni = rec
         elif kw == "STOP":
@@ -351,6 +463,7 @@ class _Reader:
             # a floating aperture clips at the semi-diameter (DIAM); only its minimum radius matters
             if rec.tokens and self.number(rec, 0, "minimum radius") != 0.0:
                 raise self.error(rec.line, "FLAP: an annular aperture (non-zero minimum radius) is not supported")
+            surf.flap = rec
         elif kw in _NONCIRCULAR_APERTURES:
             if not self.all_zero(rec):
                 raise self.error(rec.line, f"{kw}: {_NONCIRCULAR_APERTURES[kw]} is not supported (only circular clear apertures)")
@@ -364,10 +477,14 @@ class _Reader:
             raise self.error(rec.line, "GRIN: gradient-index media are not supported")
         elif kw in _THICKNESS_SOLVES:
             surf.solves.append(rec)
-        elif kw in _HARMLESS_SURFACE_KEYWORDS:
+        elif kw in _ROUTINE_SURFACE_KEYWORDS:
             pass
+        elif kw in _HARMLESS_SURFACE_KEYWORDS:
+            self.skip(rec, known=True)
+        elif re.fullmatch(r"[A-Z][A-Z0-9]{2,3}", kw):
+            self.skip(rec, known=False)
         else:
-            raise self.error(rec.line, f"{kw}: unknown or unsupported surface keyword")
+            raise self.error(rec.line, f"{rec.keyword[:20]!r}: not a .zmx surface record (a keyword of 3-4 capital letters)")
 
     # -- pass 2: the prescription
 
@@ -407,12 +524,24 @@ class _Reader:
         elif code not in (0, 1, 2, 3):
             raise self.error(rec.line, f"GLAS {name}: unknown glass solve type {code}")
         if upper == "___BLANK" or code == 1:  # a model glass: n_d, V_d (V_d = 0: no dispersion given)
-            if not n_d > 0.0:
-                raise self.error(rec.line, f"GLAS {name}: a model glass needs n_d > 0, got {n_d}")
+            if abs(n_d - 1.0) <= 1e-3:  # "air" written as a model glass (some writers give air relative to vacuum)
+                note = f"{os.path.basename(self.filename)}:{rec.line}: a model glass of n_d {n_d:g} is read as air"
+                if note not in self.notes:
+                    self.notes.append(note)
+                return AIR
+            if not 1.0 < n_d < 4.0:
+                raise self.error(rec.line, f"GLAS {name}: a model glass needs 1 < n_d < 4, got {n_d}")
             return MediumSpec(n_d=n_d, v_d=v_d if v_d > 0.0 else None)
-        if (n_d, v_d) == _PLACEHOLDER_ND_VD or n_d <= 1.0:
-            return MediumSpec(glass=name)
-        return MediumSpec(glass=name, n_d=n_d, v_d=v_d if v_d > 0.0 else None)
+        # A catalog glass (fixed, picked up, substituted or with zero offsets): the model columns
+        # beside it are what OpticStudio kept from an earlier model glass (or its defaults 1.5 /
+        # 40), not values the design states, so only the name is read; values a jaxflare file
+        # states are in its NOTE lines.
+        stated = self.stated_glass.get(surf.number)
+        if stated is not None:
+            n_stated, v_stated = _parse_float(stated[0]), _parse_float(stated[1])
+            if n_stated is not None and v_stated is not None and math.isfinite(n_stated) and math.isfinite(v_stated):
+                return MediumSpec(glass=name, n_d=n_stated if n_stated > 0 else None, v_d=v_stated if v_stated > 0 else None)
+        return MediumSpec(glass=name)
 
     def radius_from(self, rec: _Rec | None, number: int) -> float:
         """Signed radius in mm from ``CURV``: the shortest decimal whose reciprocal is the stored
@@ -520,29 +649,33 @@ class _Reader:
             raise self.error(stops[1].stop.line, f"STOP: more than one aperture stop (SURF {stops[0].number} and SURF {stops[1].number})")
 
         basename = os.path.basename(self.filename)
+        media = [self.medium(surf) for surf in lens]
         surfaces = []
+        dropped: list[str] = []
         for k, surf in enumerate(lens):
             kind, radius, conic, coefficients = self.shape(surf)
-            semi_aperture = math.nan
-            if surf.clap is not None:
-                semi_aperture = self.length(surf.clap, 1, "maximum radius")
-            elif surf.diam is not None:
-                semi_aperture = self.length(surf.diam, 0, "semi-diameter")
-                if semi_aperture < 0:
-                    raise self.error(surf.diam.line, f"DIAM: negative semi-diameter {semi_aperture}")
-                if semi_aperture == 0.0:
-                    semi_aperture = math.nan  # 0 = not given
-            if not semi_aperture > 0.0:
-                semi_aperture = math.nan
-            label = surf.comment if surf.comment else f"{basename}:{surf.line}: SURF {surf.number} (surface {k})"
+            before = media[k - 1] if k > 0 else AIR
+            dummy = media[k] == before and surf.stop is None and surf.clap is None and surf.flap is None
+            thicknesses = tuple(per_config[surf.number])
+            if dummy:
+                # no index change and no aperture: the surface does nothing to the rays
+                dropped.append(f"SURF {surf.number}")
+                if surfaces:
+                    previous = surfaces[-1]
+                    merged = tuple(a + b for a, b in zip(previous.thicknesses_mm, thicknesses))
+                    surfaces[-1] = dataclasses.replace(previous, thicknesses_mm=merged)
+                else:
+                    notes.append(f"the front dummy SURF {surf.number} was dropped: z = 0 is the vertex of the next surface, {sum(thicknesses[:1]):g} mm behind it")
+                continue
+            label = surf.comment if surf.comment else f"{basename}:{surf.line}: SURF {surf.number} (surface {len(surfaces)})"
             if surf.coating:
                 label += f" [Zemax coating {surf.coating}]"
             surfaces.append(
                 SurfaceSpec(
                     radius_mm=radius,
-                    thicknesses_mm=tuple(per_config[surf.number]),
-                    medium=self.medium(surf),
-                    semi_aperture_mm=semi_aperture,
+                    thicknesses_mm=thicknesses,
+                    medium=media[k],
+                    semi_aperture_mm=self.semi_aperture(surf, is_interface=media[k] != before),
                     kind=kind,
                     conic=conic,
                     aspheric_coefficients=coefficients,
@@ -551,6 +684,30 @@ class _Reader:
                     label=label,
                 )
             )
+        if dropped:
+            notes.append(
+                f"dummy surfaces dropped (the same medium on both sides, no CLAP/FLAP aperture, not the stop: they do not change the rays; "
+                f"their thicknesses are added to the surface before): {', '.join(dropped)}"
+            )
+        if self.skipped:
+            notes.append(
+                "skipped records that do not change the sequential optics (besides the display, field and merit-function records "
+                "every file has): " + ", ".join(sorted(self.skipped))
+            )
+        if self.unknown:
+            listed = ", ".join(
+                f"{kw} (line {lines[0]})" if len(lines) == 1 else f"{kw} ({len(lines)} records, first on line {lines[0]})"
+                for kw, lines in sorted(self.unknown.items(), key=lambda item: item[1][0])
+            )
+            notes.append(f"skipped records this reader does not know (they are not among the records that change the optics): {listed}")
+        stop_surface = next(s for s in surfaces if s.is_stop)
+        if self.aperture_kind == "FLOA" and math.isnan(stop_surface.semi_aperture_mm):
+            notes.append(
+                f"FLOA: the system aperture floats with the stop's semi-diameter, but the stop ({stop_surface.label}) has no DIAM; "
+                "the stop is sized from the other apertures when the lens is built"
+            )
+        if self.aperture_kind == "OBNA":
+            notes.append("OBNA: an object-space numerical aperture has no meaning for an object at infinity; the stop's semi-diameter sets the aperture")
 
         if not self.name and self.filename != "<string>":
             name = os.path.splitext(basename)[0]
@@ -561,10 +718,41 @@ class _Reader:
             surfaces=tuple(surfaces),
             source="" if self.filename == "<string>" else f"Zemax OpticStudio file {basename}",
             stated_f_number=self.f_number,
+            entrance_pupil_diameter_mm=self.entrance_pupil_diameter(),
             design_wavelength_nm=self.design_wavelength(),
             notes="\n".join(notes),
             glass_catalogs=tuple(self.catalogs),
         )
+
+    def semi_aperture(self, surf: _RawSurface, is_interface: bool) -> float:
+        """The clear semi-aperture jaxflare clips at, from Zemax's apertures (see the module docstring)."""
+        if surf.clap is not None:
+            return self.length(surf.clap, 1, "maximum radius")
+        diam = math.nan
+        if surf.diam is not None:
+            diam = self.length(surf.diam, 0, "semi-diameter")
+            if diam < 0:
+                raise self.error(surf.diam.line, f"DIAM: negative semi-diameter {diam}")
+        if surf.flap is not None or surf.stop is not None:
+            return diam if diam > 0.0 else math.nan
+        mema = self.length(surf.mema, 0, "mechanical semi-diameter") if surf.mema is not None else math.nan
+        if mema > 0.0 and surf.curv is not None:
+            # beyond the rim of a sphere (or of a conic with k > -1) the element's edge is the flat
+            # annulus OpticStudio draws out to MEMA, not the refracting surface
+            curvature = abs(self.number(surf.curv, 0, "curvature")) / float(self.scale())
+            conic = self.number(surf.coni, 0, "conic") if surf.coni is not None else 0.0
+            if curvature > 0.0 and conic > -1.0:
+                mema = min(mema, 0.98 / (curvature * math.sqrt(1.0 + conic)))
+        edge = max((v for v in (diam, mema) if v > 0.0), default=math.nan)  # the edge of the glass
+        return edge if is_interface else math.nan
+
+    def entrance_pupil_diameter(self) -> float | None:
+        if self.entrance_pupil is None:
+            return None
+        value = self.length(self.entrance_pupil, 0, "entrance pupil diameter")
+        if not value > 0.0:
+            raise self.error(self.entrance_pupil.line, f"ENPD: the entrance pupil diameter must be > 0, got {value}")
+        return value
 
     def design_wavelength(self) -> float:
         primary = self.integer(self.primary_wavelength, 0, "primary wavelength") if self.primary_wavelength else 1
@@ -677,8 +865,7 @@ def parse_zmx(text: str, filename: str = "<string>") -> LensPrescription:
 def read_zmx(path: str | os.PathLike) -> LensPrescription:
     """Read a sequential Zemax ``.zmx`` file (UTF-16 or ASCII/UTF-8) into a :class:`LensPrescription`."""
     filename = os.fspath(path)
-    with open(filename, "rb") as handle:
-        data = handle.read()
+    data = read_input_bytes(filename, ".zmx file", LensFormatError)
     prescription = parse_zmx(decode_zmx_bytes(data, filename), filename)
     return dataclasses.replace(prescription, path=filename)
 
@@ -700,15 +887,19 @@ def zmx_text(prescription: LensPrescription) -> str:
     of the sensor half-diagonal, the F, design and C wavelengths (the design wavelength primary), an
     object surface at infinity, one ``SURF`` per surface (``STANDARD``, ``EVENASPH`` for aspheres,
     ``TOROIDAL`` for cylinders) with ``STOP``, ``CURV``, ``PARM``, ``DISZ``, ``GLAS``, ``CONI``,
-    ``DIAM`` and the label as ``COMM``, the image surface, and ``MNUM`` with ``THIC`` rows for the
-    thicknesses that change between zoom positions.
+    ``DIAM`` with a ``CLAP`` circular aperture of the same radius (jaxflare's semi-apertures clip,
+    which in Zemax takes an aperture) and the label as ``COMM``, the image surface, and ``MNUM``
+    with ``THIC`` rows for the thicknesses that change between zoom positions. The system aperture
+    is ``FNUM`` (a stated f-number), else ``ENPD`` (a stated entrance pupil), else ``FLOA``.
 
     Not representable, so not written: thin-film coatings (a ``NOTE`` lists what was dropped),
     per-glass catalogs (they go to ``GCAT``), the source, stated focal lengths, sensor size (only as
     the field heights), aperture blades and the file path. A radius whose curvature does not
     reproduce it exactly is recorded in a ``NOTE jaxflare: radius`` line that :func:`parse_zmx` uses.
     Degenerate values do not come back as written: a flat ``cylindrical_x`` surface reads back as a
-    flat ``cylindrical_y`` one, a semi-aperture of 0 as ``math.nan``, a radius of ``-inf`` as ``inf``.
+    flat ``cylindrical_y`` one, a semi-aperture of 0 as ``math.nan``, a radius of ``-inf`` as ``inf``,
+    and a dummy surface (the same medium on both sides, not the stop) without a semi-aperture is
+    dropped on reading, its thickness added to the surface before.
     """
     surfaces = prescription.surfaces
     where = prescription.path or prescription.name or "prescription"
@@ -744,6 +935,8 @@ def zmx_text(prescription: LensPrescription) -> str:
         if not (math.isfinite(f_number) and f_number > 0):
             raise LensFormatError(f"{where}: stated f-number must be a positive number, got {f_number}")
         lines.append(f"FNUM {_num(f_number)} 0")
+    elif prescription.entrance_pupil_diameter_mm is not None:
+        lines.append(f"ENPD {_num(prescription.entrance_pupil_diameter_mm)}")
     else:
         lines.append("FLOA")
     lines += ["ENVD 20 1 0", "GFAC 0 0"]
@@ -845,6 +1038,8 @@ def _surface_lines(surface: SurfaceSpec, number: int, here: str, hints: list[str
         n_d = _num(_finite(medium.n_d, here, "n_d")) if medium.n_d is not None else "0"
         v_d = _num(_finite(medium.v_d, here, "v_d")) if medium.v_d is not None else "0"
         lines.append(f"  GLAS {medium.glass} 0 0 {n_d} {v_d} 0 0 0 0 0 0")
+        if medium.n_d is not None or medium.v_d is not None:  # OpticStudio's reader ignores these columns; ours reads the NOTE
+            hints.append(f"{_WRITER_NOTE_PREFIX} stated SURF {number} n_d {n_d} v_d {v_d}")
     elif medium.n_d is not None:
         n_d = _finite(medium.n_d, here, "n_d")
         if n_d <= 0:
@@ -858,6 +1053,7 @@ def _surface_lines(surface: SurfaceSpec, number: int, here: str, hints: list[str
         if not (math.isfinite(semi) and semi >= 0):
             raise LensFormatError(f"{here}: semi-aperture must be a positive number or math.nan, got {semi}")
         lines.append(f'  DIAM {_num(semi)} 1 0 0 1 ""')
+        lines.append(f"  CLAP 0 {_num(semi)} 0")  # jaxflare's semi-apertures clip: a circular aperture in Zemax
     return lines
 
 

@@ -15,12 +15,15 @@ from . import _paraxial
 from ._glass import D_LINE_NM, Glass, UnknownGlassError, find_glass, model_glass
 from ._prescription import (
     DEFAULT_COATING,
+    F_NUMBER_RANGE,
     UNCOATED,
     CoatingSpec,
     LensFormatError,
     LensPrescription,
     MediumSpec,
     SurfaceSpec,
+    check_blades,
+    check_prescription,
 )
 from ._surface import SurfaceKind
 
@@ -170,10 +173,22 @@ class Lens(eqx.Module):
         return self.with_stop_radius(self.max_stop_radius_mm).f_number()
 
     def sensor_z_for_focus(self, focus_distance_mm: float = math.inf, wavelength_nm: float = D_LINE_NM) -> float:
-        """z of the paraxial image plane for an axial object ``focus_distance_mm`` in front of vertex 0."""
+        """z of the paraxial image plane for an axial object ``focus_distance_mm`` in front of vertex 0.
+
+        Raises ``ValueError`` when the lens cannot focus there: an object at or inside the front
+        focal point has no real image behind the lens (the message gives that distance).
+        """
         if not focus_distance_mm > 0:
             raise ValueError(f"focus_distance_mm must be > 0 (or inf), got {focus_distance_mm}")
-        distance = _paraxial.image_distance(self.paraxial_system(wavelength_nm), focus_distance_mm)
+        system = self.paraxial_system(wavelength_nm)
+        distance = _paraxial.image_distance(system, focus_distance_mm)
+        if not (math.isfinite(distance) and distance > 0):
+            (_, _), (c, d) = system
+            front_focus = -d / c if c != 0 else math.inf  # the front focal point's distance in front of vertex 0
+            limit = f" (objects must be farther than its front focal point, {front_focus / 1000.0:.4g} m in front of the lens)" if front_focus > 0 else ""
+            raise ValueError(
+                f"'{self.name}' cannot focus at {focus_distance_mm / 1000.0:g} m: the image would not lie behind the lens{limit}"
+            )
         return float(self.vertex_z_mm[-1]) + distance
 
     # ----------------------------------------------------------------- variants
@@ -187,8 +202,8 @@ class Lens(eqx.Module):
 
     def with_f_number(self, f_number: float) -> "Lens":
         """The same lens stopped to ``f_number`` (object at infinity); an error if faster than wide open."""
-        if not f_number > 0:
-            raise ValueError(f"f_number must be > 0, got {f_number}")
+        if not (isinstance(f_number, (int, float)) and F_NUMBER_RANGE[0] <= f_number <= F_NUMBER_RANGE[1]):
+            raise ValueError(f"f_number must be a number from {F_NUMBER_RANGE[0]:g} to {F_NUMBER_RANGE[1]:g}, got {f_number!r}")
         wide_open = self.widest_f_number
         if f_number < wide_open * (1 - 1e-6):
             raise ValueError(f"f/{f_number:g} is faster than '{self.name}' allows: its widest aperture is f/{wide_open:.3g}")
@@ -199,8 +214,10 @@ class Lens(eqx.Module):
         """Change the iris: ``blades`` >= 3 for a polygon, 0 for a circle; rotation in degrees."""
         lens = self
         if blades is not None:
-            if not isinstance(blades, int) or blades < 0 or blades in (1, 2):
-                raise ValueError(f"blades must be 0 (circular) or an integer >= 3, got {blades!r}")
+            try:
+                check_blades(blades, "with_aperture")
+            except LensFormatError as error:
+                raise ValueError(str(error)) from None
             lens = dataclasses.replace(lens, aperture_blades=blades)
         if rotation_deg is not None:
             lens = eqx.tree_at(lambda l: l.aperture_rotation_rad, lens, jnp.asarray(math.radians(rotation_deg), lens.aperture_rotation_rad.dtype))
@@ -348,11 +365,40 @@ class Lens(eqx.Module):
 # --------------------------------------------------------------------- building
 
 
+GLASS_SUFFIX_RULES: tuple[tuple[str, str], ...] = (
+    ("_MOLD", ("a moulded (precision-moulding) version of the catalog glass; its index after moulding, "
+               "typically 0.001-0.005 lower, is not modelled")),
+    ("-MOLD", "a moulded version of the catalog glass; its lower index after moulding is not modelled"),
+)
+"""Spelling rules for glass names that catalogs lack: ``(suffix, meaning)``. A name ending in one
+of them that is not in the catalogs is looked up without the suffix, and the substitution is
+reported in the lens notes."""
+
+
+def non_dispersive_glass(n_d: float) -> Glass:
+    """A medium of index ``n_d`` at every wavelength (a source that gives no Abbe number)."""
+    if not (isinstance(n_d, (int, float)) and 1.0 < n_d < 4.0):
+        raise ValueError(f"n_d must be a number in (1, 4), got {n_d!r}")
+    return Glass(
+        name=f"MODEL_{float(n_d)!r}_nodispersion", catalog="MODEL", sellmeier_b=(n_d * n_d - 1.0, 0.0, 0.0), sellmeier_c_um2=(0.0, 0.0, 0.0),
+        n_d=n_d, v_d=math.inf, status="model", source="model glass without dispersion (no Abbe number given)",
+    )
+
+
+def _note(notes: list[str], text: str) -> None:
+    notes.append(text)
+    warnings.warn(text, LensWarning, stacklevel=5)
+
+
 def _resolve_medium(medium: MediumSpec, surface: SurfaceSpec, prescription: LensPrescription, notes: list[str]) -> Glass | None:
     if medium.is_air:
         return None
     if medium.glass is None:
         try:
+            if medium.v_d is None:
+                glass = non_dispersive_glass(medium.n_d)
+                _note(notes, f"{surface.label}: model glass n_d={medium.n_d} has no Abbe number given; it is used without dispersion")
+                return glass
             return model_glass(medium.n_d, medium.v_d)
         except ValueError as error:
             raise LensFormatError(f"{surface.label}: {error}") from None
@@ -360,22 +406,32 @@ def _resolve_medium(medium: MediumSpec, surface: SurfaceSpec, prescription: Lens
     try:
         glass = find_glass(medium.glass, catalogs)
     except UnknownGlassError as error:
-        if medium.n_d is not None and medium.v_d is not None:
-            note = (
-                f"{surface.label}: glass {medium.glass!r} is not in the catalogs; substituted a model glass "
-                f"with the stated n_d={medium.n_d}, V_d={medium.v_d}"
-            )
-            notes.append(note)
-            warnings.warn(note, LensWarning, stacklevel=4)
-            return model_glass(medium.n_d, medium.v_d)
-        raise LensFormatError(f"{surface.label}: {error}") from None
+        for suffix, meaning in GLASS_SUFFIX_RULES:
+            if medium.glass.upper().endswith(suffix) and len(medium.glass) > len(suffix):
+                try:
+                    glass = find_glass(medium.glass[: -len(suffix)], catalogs)
+                except UnknownGlassError:
+                    continue
+                _note(notes, f"{surface.label}: glass {medium.glass!r} read as {glass.qualified_name}: the suffix {suffix} names {meaning}")
+                break
+        else:
+            if medium.n_d is not None and medium.v_d is not None:
+                _note(
+                    notes,
+                    f"{surface.label}: glass {medium.glass!r} is not in the catalogs; substituted a model glass "
+                    f"with the stated n_d={medium.n_d}, V_d={medium.v_d}",
+                )
+                return model_glass(medium.n_d, medium.v_d)
+            raise LensFormatError(
+                f"{surface.label}: {error}. Map the name to a catalog glass with glass_aliases "
+                f"(load_lens(..., glass_aliases={{{medium.glass!r}: 'CATALOG:NAME'}}), or --glass {medium.glass}=CATALOG:NAME on the command line)"
+            ) from None
     if medium.n_d is not None and abs(glass.n_d - medium.n_d) > STATED_INDEX_TOLERANCE:
-        note = (
+        _note(
+            notes,
             f"{surface.label}: catalog glass {glass.catalog}:{glass.name} has n_d={glass.n_d:.5f}, "
-            f"but the source states {medium.n_d}; using the catalog glass"
+            f"but the source states {medium.n_d}; using the catalog glass",
         )
-        notes.append(note)
-        warnings.warn(note, LensWarning, stacklevel=4)
     return glass
 
 
@@ -397,11 +453,10 @@ def _default_coating(before: Glass | None, after: Glass | None, spec: CoatingSpe
 
 def build_lens(prescription: LensPrescription, zoom_position: int = 0) -> Lens:
     """Resolve glasses and coatings, derive missing apertures, and build the array-valued lens."""
+    check_prescription(prescription)
     surfaces = prescription.surfaces
     num = len(surfaces)
-    if num == 0:
-        raise LensFormatError(f"{prescription.path or prescription.name}: the lens has no surfaces")
-    if not 0 <= zoom_position < prescription.num_zoom_positions:
+    if isinstance(zoom_position, bool) or not isinstance(zoom_position, (int, np.integer)) or not 0 <= zoom_position < prescription.num_zoom_positions:
         raise ValueError(f"zoom_position must be in [0, {prescription.num_zoom_positions - 1}] for '{prescription.name}', got {zoom_position}")
     stop_index = prescription.stop_surface_index
     notes: list[str] = []
@@ -412,6 +467,11 @@ def build_lens(prescription: LensPrescription, zoom_position: int = 0) -> Lens:
         raise LensFormatError(f"{surfaces[-1].label}: the medium after the last surface (image space) must be air")
     coatings = [_default_coating(media[s], media[s + 1], surfaces[s].coating) for s in range(num)]
     interface_surfaces = tuple(s for s in range(num) if not _same_medium(media[s], media[s + 1]))
+    if not interface_surfaces:
+        raise LensFormatError(
+            f"{prescription.path or prescription.name}: the lens has no refracting interface (air, or one medium, on both sides of "
+            "every surface), so it forms no image; give a glass (medium or n_d/v_d) after the surfaces of its elements"
+        )
 
     max_layers = max([1] + [len(c.layers) for c in coatings])
     coating_indices = np.ones((num, max_layers))
@@ -466,6 +526,7 @@ def build_lens(prescription: LensPrescription, zoom_position: int = 0) -> Lens:
     if np.any(np.isnan(semi_aperture)):
         lens = _derive_semi_apertures(lens, notes)
     lens = _limit_iris_to_stated_f_number(lens, notes)
+    lens = _limit_iris_to_entrance_pupil(lens, notes)
     return dataclasses.replace(lens, notes=tuple(notes))
 
 
@@ -494,13 +555,37 @@ def _limit_iris_to_stated_f_number(lens: Lens, notes: list[str]) -> Lens:
     return eqx.tree_at(lambda l: l.stop_radius_mm, lens, semi[lens.stop_index])
 
 
+def _limit_iris_to_entrance_pupil(lens: Lens, notes: list[str]) -> Lens:
+    """Open the iris no wider than the entrance pupil diameter the source gives (Zemax ``ENPD``)."""
+    diameter = lens.prescription.entrance_pupil_diameter_mm
+    if diameter is None:
+        return lens
+    _, pupil_radius = lens.entrance_pupil()
+    if not pupil_radius > 0.5 * diameter * (1.0 + 1e-3):
+        return lens
+    radius = lens.max_stop_radius_mm * 0.5 * diameter / pupil_radius
+    notes.append(
+        f"{lens.prescription.path or lens.name}: iris limited to the stated entrance pupil diameter {diameter:g} mm: "
+        f"stop semi-aperture {lens.max_stop_radius_mm:.3f} mm reduced to {radius:.3f} mm"
+    )
+    semi = lens.semi_aperture_mm.at[lens.stop_index].set(radius)
+    lens = eqx.tree_at(lambda l: l.semi_aperture_mm, lens, semi)
+    return eqx.tree_at(lambda l: l.stop_radius_mm, lens, semi[lens.stop_index])
+
+
 def _derive_semi_apertures(lens: Lens, notes: list[str]) -> Lens:
-    """Fill missing clear semi-apertures from a paraxial marginal ray (stated f-number) and a chief
-    ray at the corner of the sensor, with a 5 % margin, capped below |R|."""
+    """Fill missing clear semi-apertures from a paraxial marginal ray and a chief ray at the corner
+    of the sensor, with a 5 % margin, capped below |R|.
+
+    The marginal ray's entrance height comes from, in this order: the stated f-number, the stated
+    entrance pupil diameter, the stop's own semi-aperture, or (when the stop has none) the largest
+    axial beam that the surfaces with a semi-aperture let through.
+    """
     prescription = lens.prescription
-    if prescription.stated_f_number is None:
-        raise LensFormatError(f"{prescription.path or prescription.name}: semi-apertures are missing and no f_number is stated to derive them from")
+    where = prescription.path or prescription.name
     efl = lens.focal_length()
+    if not (math.isfinite(efl) and efl != 0.0):
+        raise LensFormatError(f"{where}: semi-apertures are missing and cannot be derived: the lens is afocal (no focal length)")
     half_field = math.atan(0.5 * math.hypot(prescription.sensor_width_mm, prescription.sensor_height_mm) / abs(efl))
     powers, n = lens._powers(D_LINE_NM, "y")
     thickness = np.asarray(lens.thickness_mm, np.float64)
@@ -510,29 +595,56 @@ def _derive_semi_apertures(lens: Lens, notes: list[str]) -> Lens:
         front = _paraxial.transfer_matrix(thickness[stop - 1], n[stop]) @ front
     else:
         front = np.eye(2)
-    entrance_radius = abs(efl) / (2.0 * prescription.stated_f_number)
     (a, b), _ = front
-    marginal = np.array([entrance_radius, 0.0])
-    chief = np.array([-b / a * math.tan(half_field), math.tan(half_field)])
-    heights = np.zeros(lens.num_surfaces)
-    rays = np.stack([marginal, chief], axis=1)
-    for s in range(lens.num_surfaces):
-        if s > 0:
-            rays = _paraxial.transfer_matrix(thickness[s - 1], n[s]) @ rays
-        heights[s] = abs(rays[0, 0]) + (abs(rays[0, 1]) if s != stop else 0.0)
-        rays = _paraxial.refraction_matrix(powers[s]) @ rays
     semi = np.asarray(lens.semi_aperture_mm, np.float64).copy()
+
+    def heights(entrance: float) -> np.ndarray:
+        rays = np.stack([np.array([entrance, 0.0]), np.array([-b / a * math.tan(half_field), math.tan(half_field)])], axis=1)
+        out = np.zeros((lens.num_surfaces, 2))
+        for s in range(lens.num_surfaces):
+            if s > 0:
+                rays = _paraxial.transfer_matrix(thickness[s - 1], n[s]) @ rays
+            out[s] = np.abs(rays[0])
+            rays = _paraxial.refraction_matrix(powers[s]) @ rays
+        return out
+
+    if prescription.stated_f_number is not None:
+        entrance_radius = abs(efl) / (2.0 * prescription.stated_f_number)
+        source = f"the stated f/{prescription.stated_f_number:g}"
+    elif prescription.entrance_pupil_diameter_mm is not None:
+        entrance_radius = 0.5 * prescription.entrance_pupil_diameter_mm
+        source = f"the stated entrance pupil diameter {prescription.entrance_pupil_diameter_mm:g} mm"
+    elif math.isfinite(semi[stop]) and a != 0.0:
+        entrance_radius = semi[stop] / abs(a)
+        source = f"the stop's semi-aperture {semi[stop]:.4g} mm"
+    else:
+        unit = heights(1.0)[:, 0]
+        known = [s for s in range(lens.num_surfaces) if s != stop and math.isfinite(semi[s]) and unit[s] > 0]
+        if not known or a == 0.0:
+            missing = [prescription.surfaces[s].label or f"surface {s}" for s in range(lens.num_surfaces) if math.isnan(semi[s])]
+            raise LensFormatError(
+                f"{where}: semi-apertures are missing ({'; '.join(missing[:4])}{' ...' if len(missing) > 4 else ''}) and nothing defines "
+                "the aperture to derive them from: state the f-number (f_number), give the stop a semi-aperture, or give the "
+                "semi-apertures"
+            )
+        limiting = min(known, key=lambda s: semi[s] / unit[s])
+        entrance_radius = semi[limiting] / unit[limiting]
+        source = (
+            f"the widest axial beam the given apertures pass (limited by {prescription.surfaces[limiting].label or f'surface {limiting}'}; "
+            f"f/{abs(efl) / (2.0 * entrance_radius):.3g}), since neither an f-number nor a stop size is given"
+        )
+    ray_heights = heights(entrance_radius)
     derived = []
     for s, surface in enumerate(prescription.surfaces):
         if math.isnan(semi[s]):
-            value = heights[s] * (1.0 if s == stop else 1.05)
+            value = ray_heights[s, 0] if s == stop else 1.05 * (ray_heights[s, 0] + ray_heights[s, 1])
             if math.isfinite(surface.radius_mm):
                 value = min(value, 0.98 * abs(surface.radius_mm))
             semi[s] = value
             derived.append(s)
     note = (
-        f"{prescription.path or prescription.name}: semi-apertures of surfaces {derived} derived from paraxial marginal "
-        f"(f/{prescription.stated_f_number:g}) and chief rays ({math.degrees(half_field):.1f} deg half field); not in the source"
+        f"{where}: semi-apertures of surfaces {derived} derived from paraxial marginal ({source}) and chief rays "
+        f"({math.degrees(half_field):.1f} deg half field, the sensor corner) with a 5 % margin; not in the source"
     )
     notes.append(note)
     warnings.warn(note, LensWarning, stacklevel=3)

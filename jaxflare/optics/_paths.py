@@ -51,6 +51,8 @@ class EventTable(eqx.Module):
     @classmethod
     def from_array(cls, events) -> EventTable:
         """From the ``(..., E, 4)`` array of :func:`path_events` (columns in :class:`EventColumn` order)."""
+        if isinstance(events, np.ndarray):  # slice on the host: four device arrays, no device work
+            return cls(*(jnp.asarray(np.ascontiguousarray(events[..., column])) for column in EventColumn))
         events = jnp.asarray(events)
         return cls(*(events[..., column] for column in EventColumn))
 

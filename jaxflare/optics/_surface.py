@@ -65,9 +65,31 @@ def sag_and_slope(rho2: Array, curvature: Array, conic: Array, aspheric: Array) 
     slope = safe_divide(curvature, root)
     for k in range(aspheric.shape[-1]):  # A4 rho^4 + A6 rho^6 + ...
         m = k + 2
-        slope = slope + 2 * m * aspheric[..., k] * rho2 ** (m - 1)
-        sag = sag + aspheric[..., k] * rho2**m
+        coefficient = aspheric[..., k]
+        # a zero (padding) coefficient's power is taken at 0: rho^(2m) may overflow where the
+        # surface's own terms do not, and 0 * inf is NaN in the value and in the gradient
+        base = jnp.where(coefficient != 0, rho2, 0.0)
+        slope = slope + 2 * m * coefficient * base ** (m - 1)
+        sag = sag + coefficient * base**m
     return sag, slope
+
+
+ASPHERE_SAG_LIMIT_MM = 1.0e12
+"""Newton iterates of an aspheric intersection stay where every term of the polynomial is below
+this (mm): far beyond any lens, well inside the float32 range even after squaring for a normal."""
+
+
+def aspheric_rho2_limit(aspheric: Array) -> Array:
+    """The largest rho^2 (mm^2) at which every even-asphere term ``|A_m| rho^(2m)`` stays below
+    :data:`ASPHERE_SAG_LIMIT_MM` (capped at 1e12 mm^2); no gradient flows through it."""
+    aspheric = jax.lax.stop_gradient(jnp.asarray(aspheric))
+    limit = jnp.asarray(1.0e12, aspheric.dtype)
+    for k in range(aspheric.shape[-1]):
+        m = k + 2
+        size = jnp.abs(aspheric[..., k])
+        bound = jnp.where(size > 0, (ASPHERE_SAG_LIMIT_MM / jnp.where(size > 0, size, 1.0)) ** (1.0 / m), limit)
+        limit = jnp.minimum(limit, bound)
+    return limit
 
 
 def meridian_weights(kind: Array) -> tuple[Array, Array]:
@@ -137,23 +159,47 @@ def intersect(point: Vector, direction: Vector, vertex_z, curvature, conic, asph
     t = materialise(jnp.where(hit, jnp.where(take0, t0, t1), 0.0))
     x, y, z = materialise(px + t * dx), materialise(py + t * dy), materialise(pz + t * dz)
     if has_aspheres:
-        for _ in range(4):  # Newton on f(t) = z(t) - sag(rho^2(t)), starting at the conic solution
+        # Newton on f(t) = z(t) - sag(rho^2(t)), starting at the conic solution. A ray far outside
+        # the surface can send the iterate to where the polynomial overflows (float32: A10 rho^10
+        # at rho ~ 1e4 mm) and an inf, even behind a mask, makes the gradient NaN. So the
+        # polynomial is only evaluated where it stays below ASPHERE_SAG_LIMIT_MM (elsewhere at
+        # rho = 0, a safe point), an iterate that leaves that region is frozen, and such a ray
+        # is no hit.
+        limit = aspheric_rho2_limit(aspheric)
+        inside = jnp.ones_like(hit)
+        for _ in range(4):
             rho2 = wx * x * x + wy * y * y
-            sag, slope = sag_and_slope(rho2, c, conic, aspheric)
+            ok = rho2 <= limit
+            sag, slope = sag_and_slope(jnp.where(ok, rho2, 0.0), c, conic, aspheric)
             f = z - sag
             df = dz - slope * (wx * x * dx + wy * y * dy)
-            t = materialise(t - safe_divide(f, df))
+            t_next = t - safe_divide(f, df)
+            x_next, y_next = px + t_next * dx, py + t_next * dy
+            ok = ok & (wx * x_next * x_next + wy * y_next * y_next <= limit)
+            t = materialise(jnp.where(ok, t_next, t))
+            inside = inside & ok
             x, y, z = materialise(px + t * dx), materialise(py + t * dy), materialise(pz + t * dz)
         rho2 = wx * x * x + wy * y * y
+        ok = inside & (rho2 <= limit)
+        rho2 = jnp.where(ok, rho2, 0.0)
         sag, slope = sag_and_slope(rho2, c, conic, aspheric)
-        hit = hit & (jnp.abs(z - sag) < 1e-4) & (1.0 - k1 * c * c * rho2 >= 0)
-        nx, ny, nz = wx * x * slope, wy * y * slope, -jnp.ones_like(z)
+        hit = hit & ok & (jnp.abs(z - sag) < 1e-4) & (1.0 - k1 * c * c * rho2 >= 0)
+        # a ray that misses gets a finite point and normal (where it started, facing -z): callers
+        # that record positions unconditionally (the stop crossings) stay finite, and so do their
+        # gradients (on a conic a miss has t = 0 already; Newton may have moved it here)
+        x, y, z = materialise(jnp.where(hit, x, px)), materialise(jnp.where(hit, y, py)), materialise(jnp.where(hit, z, pz))
+        nx = jnp.where(hit, wx * x * slope, 0.0)
+        ny = jnp.where(hit, wy * y * slope, 0.0)
+        nz = -jnp.ones_like(z)
     else:
         # gradient of the quadric c rho^2 - 2 z + (1 + k) c z^2, halved (exact on the surface)
         nx, ny, nz = wx * c * x, wy * c * y, k1 * c * z - 1.0
     nx, ny, nz = materialise(nx), materialise(ny), materialise(nz)
-    scale = materialise(1.0 / jnp.sqrt(nx * nx + ny * ny + nz * nz))
-    normal = Vector(materialise(nx * scale), materialise(ny * scale), materialise(nz * scale))
+    # a zero-length normal (only where a quadric's rim meets the ray) is taken as -z, not 0/0
+    length2 = nx * nx + ny * ny + nz * nz
+    positive = length2 > 0
+    scale = materialise(jnp.where(positive, 1.0 / jnp.sqrt(jnp.where(positive, length2, 1.0)), 0.0))
+    normal = Vector(materialise(nx * scale), materialise(ny * scale), materialise(jnp.where(positive, nz * scale, -1.0)))
     return Vector(x, y, z + vertex_z), normal, hit
 
 

@@ -32,6 +32,7 @@ from ..polynomial import PathSystemReport, PolynomialPathTracer, path_system
 from ..scenes import LightKind, RenderSettings, Scene, camera_lens, check_settings, load_scene, sensor_size_mm
 from ._adaptive import masked_table, uniform_table
 from ._lights import LightArrays, light_arrays
+from ._memory import check_image_memory
 from ._path_sets import AbstractPathSet, AdaptivePathSet, UniformPathSet
 from ._quality import AUTO_MAX_FALLBACK, FALLBACK_CAPACITIES, QUALITY_LEVELS, RAYS_PER_STEP, TRUSTED_FOR_DEGREE, Quality
 from ._sampling import front_disc
@@ -389,6 +390,7 @@ def plan_render(
     fresnel_table = np.asarray(on_axis_fresnel(lens32, events_all, jnp.asarray(spectral.wavelength_nm, jnp.float32)))
     path_tint = path_tints(camera, lens.num_interfaces, paths_all)
     num_layers = min(settings.max_flare_layers, num_flares) + 1 + (1 if settings.core else 0)
+    check_image_memory(width, height, num_layers)  # before anything large is allocated
     rays_per_path = rays_per_path_for(num_paths, level.wavelength_strata)
     front = front_disc(lens)
     effects = scene_effects(scene, lens, pitch)

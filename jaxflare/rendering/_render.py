@@ -41,6 +41,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 
+from .._limits import MAX_SEED
 from ..optics import GhostPath
 from ..scenes import ESTIMATORS, Scene, load_scene
 from ._grid_render import render_grid
@@ -64,7 +65,7 @@ def render(
     Args:
         scene: the scene; its ``render`` settings apply unless overridden here.
         quality: ``"preview"`` or ``"production"`` (see :data:`QUALITY_LEVELS`); default the scene's.
-        seed: random seed; the same seed gives the same image.
+        seed: random seed, 0 .. 2^32 - 1; the same seed gives the same image.
         samples: total Monte Carlo samples (default the quality's), rounded up to whole batches.
         method: ``"exact"``, ``"polynomial"`` or ``"auto"`` (default the scene's).
         paths: render only these ghost paths ``(j, i)`` (default: every two-reflection path).
@@ -76,6 +77,8 @@ def render(
     Returns:
         A :class:`RenderResult` (image, layers, statistics; ``write_exr``/``write_png``).
     """
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
+        raise ValueError(f"seed must be an integer from 0 to {MAX_SEED:,}, got {seed!r}")
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
     chosen = estimator if estimator is not None else scene.render.estimator

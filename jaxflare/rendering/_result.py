@@ -17,10 +17,16 @@ from collections.abc import Iterator, Mapping
 import numpy as np
 
 from .._version import __version__
-from ..colour import display_matrix, spectral_table
-from ..io import tone_map, write_exr, write_png
+from ..colour import colour_space_chromaticities, display_matrix, spectral_table
+from ..io import atomic_output_group, is_jaxflare_png, tone_map, write_exr, write_png
 from ..scenes import Scene
 from ._quality import radiance_scale
+from ._step import luminance_norm
+
+VARIANCE_MAX = float(np.finfo(np.float32).max)
+"""The largest value the ``variance`` layer holds (float32's): larger ones are clipped and counted."""
+VARIANCE_PIXEL_TYPE = "float"
+"""The ``variance`` layer is float32 in every EXR: in half floats a luminance squared underflows."""
 
 
 class RenderWarning(UserWarning):
@@ -135,7 +141,8 @@ class RenderResult:
     RGB to the plate). ``layers``: name -> (H, W, 3): ``core`` (the lights' primary images, not a
     flare), ``flare_JJ_II`` per flare with its own layer (ghost path (J, I), two digits each, e.g.
     ``flare_07_04``), ``flares_merged`` (all other flares); and ``variance`` (H, W, 1), the
-    per-pixel variance of the flare luminance. ``statistics``: a :class:`RenderStatistics`
+    per-pixel variance of the flare luminance (float32, also in half-float EXRs, where its small
+    values would underflow). ``statistics``: a :class:`RenderStatistics`
     (samples, hit rate, per-path energies, times, settings).
     """
 
@@ -146,7 +153,11 @@ class RenderResult:
 
     def write_exr(self, path, *, pixel_type: str | None = None, compression: str | None = None) -> str:
         """Multi-layer OpenEXR: the RGBA flare as the default layer plus every layer; lens, settings
-        and statistics in the header (``jaxflare/...`` attributes). Written atomically."""
+        and statistics in the header (``jaxflare/...`` attributes), the ``variance`` layer as float32
+        whatever ``pixel_type`` (a half-float variance is mostly zero), and the standard
+        ``chromaticities`` attribute of the render's colour space (ACEScg: AP1 primaries, ACES
+        white; linear sRGB: Rec. 709, D65). No ``whiteLuminance``: the pixels are in the units of
+        the lights' intensities, not photometric ones. Written atomically."""
         settings = self.scene.render
         layers = {"": self.image}
         layers.update(self.layers)
@@ -159,7 +170,15 @@ class RenderResult:
             "jaxflare/statistics": json.dumps(statistics.header_dict()),
             "jaxflare/layers": json.dumps(statistics.layers),
         }
-        write_exr(path, layers, pixel_type=pixel_type or settings.exr_pixel_type, compression=compression or settings.exr_compression, header=header)
+        write_exr(
+            path,
+            layers,
+            pixel_type=pixel_type or settings.exr_pixel_type,
+            compression=compression or settings.exr_compression,
+            header=header,
+            layer_pixel_types={"variance": VARIANCE_PIXEL_TYPE} if "variance" in layers else None,
+            chromaticities=colour_space_chromaticities(statistics.settings["colour_space"]),
+        )
         return os.fspath(path)
 
     def preview(self, *, include_core: bool = True, exposure_stops: float | None = None) -> np.ndarray:
@@ -177,6 +196,21 @@ class RenderResult:
     def write_png(self, path, **options) -> str:
         write_png(path, self.preview(**options))
         return os.fspath(path)
+
+    def write_files(self, exr_path, *, png: bool = False) -> list[str]:
+        """The EXR and, with ``png``, its preview ``<stem>.png``, committed together
+        (:func:`jaxflare.io.atomic_output_group`): a reader never sees an EXR and a PNG of two
+        different renders. Without ``png`` a preview that an earlier render wrote beside the EXR
+        (a jaxflare PNG) is removed; any other PNG is left alone. Returns the paths written."""
+        exr_path = os.fspath(exr_path)
+        png_path = os.path.splitext(exr_path)[0] + ".png"
+        targets = [exr_path] + ([png_path] if png else [])
+        stale = () if png or not is_jaxflare_png(png_path) else (png_path,)
+        with atomic_output_group(targets, stale=stale) as temporaries:
+            self.write_exr(temporaries[0])
+            if png:
+                self.write_png(temporaries[1])
+        return targets
 
 
 def render_result(plan, acc, render_seconds: float, table_updates: int, *, time_now: float) -> RenderResult:
@@ -229,11 +263,19 @@ def render_result(plan, acc, render_seconds: float, table_updates: int, *, time_
         layers["core"] = layers_array[layers_plan.core]
         layer_info.append(dict(layer="core", paths=["primary"]))
     if batches >= 2:
+        # the accumulated luminances are in units of the brightest light's emission (_step.luminance_norm)
+        norm = float(np.asarray(luminance_norm(plan.setup.lights), np.float64))
         mean = np.asarray(acc.flare_luminance_sum, np.float64) / batches
         second = np.asarray(acc.flare_luminance_squares, np.float64) / batches
-        variance = np.clip(second - mean**2, 0.0, None) / (batches - 1) * flare_scale**2 * batches**2
-        layers["variance"] = variance[..., None].astype(np.float32)
-        layer_info.append(dict(layer="variance", paths=[], meaning="per-pixel variance of the flare luminance estimate"))
+        variance = np.clip(second - mean**2, 0.0, None) / (batches - 1) * batches**2 * (flare_scale * norm) ** 2
+        # float64 here; the layer is float32 (and written as float32 even in half EXRs): values
+        # beyond float32's range (lights of ~1e30) are clipped to it and counted, never Inf
+        beyond = variance > VARIANCE_MAX
+        variance_clipped = int(np.count_nonzero(beyond))
+        layers["variance"] = np.minimum(variance, VARIANCE_MAX)[..., None].astype(np.float32)
+        layer_info.append(
+            dict(layer="variance", paths=[], meaning="per-pixel variance of the flare luminance estimate", clipped_values=variance_clipped)
+        )
     flare_rgb = sum(layers_array[slot] for slot in range(layers_plan.num_individual + 1))
     image = np.concatenate([flare_rgb, np.clip(np.max(flare_rgb, axis=-1, keepdims=True), 0.0, 1.0)], axis=-1).astype(np.float32)
 

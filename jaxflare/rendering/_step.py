@@ -49,7 +49,8 @@ class Accumulators(eqx.Module):
     layers: Float[Array, "Y H W 3"]
     flare_luminance_sum: Float[Array, "H W"]
     flare_luminance_squares: Float[Array, "H W"]
-    """Per-batch flare luminance images, summed and squared: the per-pixel variance layer."""
+    """Per-batch flare luminance images divided by :func:`luminance_norm`, summed and squared: the
+    per-pixel standard-deviation layer."""
     path_energy: Float[Array, "P 3"]
     path_incoming: Float[Array, " P"]
     """Luminance of the light entering the sampled front disc, per path (for the culling bound)."""
@@ -61,6 +62,12 @@ class Accumulators(eqx.Module):
     """Per path set with a sampling table: the energy each table entry carried."""
     weight_all: Float[Array, ""]
     weight_hits: Float[Array, ""]
+
+
+def luminance_norm(lights) -> Array:
+    """The brightest light's emission (at least 1e-30): the unit of the accumulated luminance
+    squares."""
+    return jnp.maximum(jnp.max(lights.emission), 1e-30).astype(jnp.float32)
 
 
 def empty_accumulators(setup: RenderSetup, num_layers: int) -> Accumulators:
@@ -128,7 +135,9 @@ def render_step(setup: RenderSetup, acc: Accumulators, key: Array) -> Accumulato
             energy = jnp.where(hit, lum, 0.0)
             acc = eqx.tree_at(lambda a: a.table_energy[table], acc, acc.table_energy[table].at[records.table_index].add(energy))
             table += 1
-    image = batch_luminance[0, :, :, 0]
+    # relative to the brightest light's emission, so that the squares stay in float32's range
+    # for any light intensity (the result's standard deviation multiplies it back in float64)
+    image = batch_luminance[0, :, :, 0] / luminance_norm(setup.lights)
     return eqx.tree_at(
         lambda a: (a.flare_luminance_sum, a.flare_luminance_squares),
         acc,

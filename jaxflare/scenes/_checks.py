@@ -18,14 +18,21 @@ def fail(where: str, message: str):
     raise SceneError(f"{where}: {message}")
 
 
-def number(where: str, value: Any, *, minimum: float | None = None, exclusive: bool = False, allow_inf: bool = False) -> float:
+def number(
+    where: str, value: Any, *, minimum: float | None = None, exclusive: bool = False, allow_inf: bool = False, maximum: float | None = None
+) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
         fail(where, f"must be a number, got {value!r}")
-    value = float(value)
+    try:
+        value = float(value)
+    except OverflowError:
+        fail(where, f"must be finite, got {value!r}")
     if math.isnan(value) or (math.isinf(value) and not allow_inf):
         fail(where, f"must be finite, got {value!r}")
     if minimum is not None and (value < minimum or (exclusive and value == minimum)):
         fail(where, f"must be {'>' if exclusive else '>='} {minimum:g}, got {value:g}")
+    if maximum is not None and value > maximum and not (allow_inf and math.isinf(value)):
+        fail(where, f"must be at most {maximum:g}, got {value:g}")
     return value
 
 
@@ -42,9 +49,18 @@ def choice(where: str, value: Any, choices: Sequence[str]) -> str:
     return value
 
 
-def integer(where: str, value: Any, minimum: int | None = None) -> int:
+def integer(where: str, value: Any, minimum: int | None = None, maximum: int | None = None) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
         fail(where, f"must be an integer, got {value!r}")
     if minimum is not None and value < minimum:
         fail(where, f"must be >= {minimum}, got {value}")
+    if maximum is not None and value > maximum:
+        fail(where, f"must be at most {maximum:,}, got {value:,}")
     return int(value)
+
+
+def sequence(where: str, value: Any, what: str) -> list:
+    """``value`` as a list, or a :class:`SceneError` saying that a list was expected there."""
+    if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple)):
+        fail(where, f"must be a list of {what}, got {value!r}")
+    return list(value)

@@ -21,8 +21,9 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from .._limits import MAX_RESOLUTION, MAX_SAMPLES
 from ..colour import canonical_colour_space
-from ..optics import COATING_PRESETS
+from ..optics import COATING_INDEX_RANGE, COATING_PRESETS, F_NUMBER_RANGE, MAX_APERTURE_BLADES, MAX_COATING_THICKNESS_NM
 from ._checks import choice, fail, integer, number, vector
 
 LIGHT_KINDS = ("point", "sphere", "disk", "directional")
@@ -62,6 +63,10 @@ EXR_PIXEL_TYPES = ("half", "float")
 EXR_COMPRESSIONS = ("none", "rle", "zips", "zip", "piz", "pxr24", "b44", "b44a", "dwaa", "dwab")
 MAX_LIGHT_FIELD_ANGLE_DEG = 85.0
 """Lights further than this from the optical axis are rejected (their rays graze the front lens)."""
+MAX_INTENSITY = 1.0e30
+"""The brightest ``intensity * flare_intensity`` a light may have (any unit: far beyond the sun)."""
+MAX_FLARE_LAYERS = 256
+"""The most flares with a layer of their own (each is a full-size image)."""
 
 # --------------------------------------------------------------------------- data classes
 
@@ -327,9 +332,9 @@ def check_camera(camera: Camera, where: str = "camera") -> None:
     if not isinstance(camera.lens, str) or not camera.lens:
         fail(f"{where}.lens", f"must be a bundled lens name or a path to a .toml/.zmx lens file, got {camera.lens!r}")
     if camera.f_number is not None:
-        number(f"{where}.f_number", camera.f_number, minimum=0.0, exclusive=True)
+        number(f"{where}.f_number", camera.f_number, minimum=F_NUMBER_RANGE[0], maximum=F_NUMBER_RANGE[1])
     if camera.aperture_blades is not None:
-        blades = integer(f"{where}.aperture_blades", camera.aperture_blades, minimum=0)
+        blades = integer(f"{where}.aperture_blades", camera.aperture_blades, minimum=0, maximum=MAX_APERTURE_BLADES)
         if blades in (1, 2):
             fail(f"{where}.aperture_blades", "must be 0 (circular iris) or at least 3")
     if camera.aperture_rotation_deg is not None:
@@ -337,12 +342,12 @@ def check_camera(camera: Camera, where: str = "camera") -> None:
     if camera.zoom_position is not None and camera.focal_length_mm is not None:
         fail(where, "give zoom_position or focal_length_mm, not both")
     if camera.zoom_position is not None:
-        integer(f"{where}.zoom_position", camera.zoom_position, minimum=0)
+        integer(f"{where}.zoom_position", camera.zoom_position, minimum=0, maximum=1000)
     if camera.focal_length_mm is not None:
-        number(f"{where}.focal_length_mm", camera.focal_length_mm, minimum=0.0, exclusive=True)
-    number(f"{where}.focus_distance_m", camera.focus_distance_m, minimum=0.0, exclusive=True, allow_inf=True)
+        number(f"{where}.focal_length_mm", camera.focal_length_mm, minimum=0.0, exclusive=True, maximum=1e5)
+    number(f"{where}.focus_distance_m", camera.focus_distance_m, minimum=0.0, exclusive=True, allow_inf=True, maximum=1e9)
     if camera.sensor_width_mm is not None:
-        number(f"{where}.sensor_width_mm", camera.sensor_width_mm, minimum=0.0, exclusive=True)
+        number(f"{where}.sensor_width_mm", camera.sensor_width_mm, minimum=0.0, exclusive=True, maximum=1000.0)
     if (
         isinstance(camera.resolution, (str, bytes))
         or not isinstance(camera.resolution, Sequence)
@@ -350,9 +355,7 @@ def check_camera(camera: Camera, where: str = "camera") -> None:
     ):
         fail(f"{where}.resolution", f"must be [width, height] in pixels, got {camera.resolution!r}")
     for k, value in enumerate(camera.resolution):
-        pixels = integer(f"{where}.resolution[{k}]", value, minimum=1)
-        if pixels > 16384:
-            fail(f"{where}.resolution[{k}]", f"must be at most 16384 pixels, got {pixels}")
+        integer(f"{where}.resolution[{k}]", value, minimum=1, maximum=MAX_RESOLUTION)
     vector(f"{where}.position_m", camera.position_m)
     vector(f"{where}.up", camera.up)
     if camera.look_at_m is not None and camera.rotation_deg is not None:
@@ -378,8 +381,11 @@ def check_camera(camera: Camera, where: str = "camera") -> None:
             choice(f"{place}.preset", override.preset, tuple(COATING_PRESETS))
         for m, layer in enumerate(override.layers or ()):
             index, thickness = vector(f"{place}.layers[{m}]", layer, 2)
-            if index < 1.0 or thickness < 0.0:
-                fail(f"{place}.layers[{m}]", f"must be [index >= 1, thickness_nm >= 0], got {list(layer)}")
+            if not (COATING_INDEX_RANGE[0] <= index <= COATING_INDEX_RANGE[1] and 0.0 <= thickness <= MAX_COATING_THICKNESS_NM):
+                fail(
+                    f"{place}.layers[{m}]",
+                    f"must be [index {COATING_INDEX_RANGE[0]:g} .. {COATING_INDEX_RANGE[1]:g}, thickness_nm 0 .. {MAX_COATING_THICKNESS_NM:g}], got {list(layer)}",
+                )
     for k, (interface, rgb) in enumerate(camera.coating_tints):
         integer(f"{where}.coating_tints[{k}].interface", interface, minimum=0)
         vector(f"{where}.coating_tints[{k}].rgb", rgb, non_negative=True)
@@ -450,8 +456,10 @@ def check_light(light: Light, where: str) -> None:
         temperature = number(f"{where}.temperature_k", light.temperature_k)
         if not 500 <= temperature <= 50000:
             fail(f"{where}.temperature_k", f"must be within 500-50000 K, got {temperature:g}")
-    number(f"{where}.intensity", light.intensity, minimum=0.0)
-    number(f"{where}.flare_intensity", light.flare_intensity, minimum=0.0)
+    intensity = number(f"{where}.intensity", light.intensity, minimum=0.0, maximum=MAX_INTENSITY)
+    gain = number(f"{where}.flare_intensity", light.flare_intensity, minimum=0.0, maximum=MAX_INTENSITY)
+    if intensity * gain > MAX_INTENSITY:
+        fail(where, f"intensity x flare_intensity = {intensity * gain:g} is beyond the maximum {MAX_INTENSITY:g}")
     if not isinstance(light.flare, bool):
         fail(f"{where}.flare", f"must be true or false, got {light.flare!r}")
     if not isinstance(light.name, str):
@@ -461,7 +469,7 @@ def check_light(light: Light, where: str) -> None:
 def check_settings(settings: RenderSettings, where: str = "render") -> None:
     choice(f"{where}.quality", settings.quality, QUALITIES)
     if settings.samples is not None:
-        integer(f"{where}.samples", settings.samples, minimum=1)
+        integer(f"{where}.samples", settings.samples, minimum=1, maximum=MAX_SAMPLES)
     try:
         canonical_colour_space(settings.colour_space)
     except ValueError as error:
@@ -474,7 +482,7 @@ def check_settings(settings: RenderSettings, where: str = "render") -> None:
     threshold = number(f"{where}.layer_threshold", settings.layer_threshold, minimum=0.0)
     if threshold > 1:
         fail(f"{where}.layer_threshold", f"is a fraction of the brightest flare and must be <= 1, got {threshold:g}")
-    integer(f"{where}.max_flare_layers", settings.max_flare_layers, minimum=0)
+    integer(f"{where}.max_flare_layers", settings.max_flare_layers, minimum=0, maximum=MAX_FLARE_LAYERS)
     choice(f"{where}.sampling", settings.sampling, SAMPLINGS)
     cull = number(f"{where}.cull_threshold", settings.cull_threshold, minimum=0.0)
     if cull >= 1:

@@ -9,7 +9,8 @@ import tomllib
 from collections.abc import Mapping
 from typing import Any
 
-from ._checks import SceneError, fail
+from ..io import decode_text, read_input_bytes
+from ._checks import SceneError, fail, sequence
 from ._model import LIGHT_KINDS, Camera, Distortion, Geometry, Hood, Light, RenderSettings, Scene, SurfaceCoating
 
 # --------------------------------------------------------------------------- TOML
@@ -83,14 +84,19 @@ def scene_from_dict(data: Mapping[str, Any], source: str | None = None) -> Scene
             lens = os.path.join(os.path.dirname(os.path.abspath(source)), lens)
         camera_table["lens"] = lens
         overrides = []
-        for k, entry in enumerate(camera_table.pop("surface_coatings", [])):
+        for k, entry in enumerate(sequence("camera.surface_coatings", camera_table.pop("surface_coatings", []), "tables {surfaces = [...], preset = ...}")):
             entry = _check_keys(f"camera.surface_coatings[{k}]", entry, {"surfaces": "", "preset": "", "layers": ""})
             surfaces = entry.get("surfaces", [])
             surfaces = tuple(surfaces) if isinstance(surfaces, list) else (surfaces,)
             layers = entry.get("layers")
-            overrides.append(SurfaceCoating(surfaces, entry.get("preset"), None if layers is None else tuple(tuple(x) for x in layers)))
+            if layers is not None:
+                layers = tuple(
+                    tuple(sequence(f"camera.surface_coatings[{k}].layers[{m}]", x, "2 numbers [index, thickness_nm]"))
+                    for m, x in enumerate(sequence(f"camera.surface_coatings[{k}].layers", layers, "[index, thickness_nm] pairs"))
+                )
+            overrides.append(SurfaceCoating(surfaces, entry.get("preset"), layers))
         tints = []
-        for k, entry in enumerate(camera_table.pop("coating_tints", [])):
+        for k, entry in enumerate(sequence("camera.coating_tints", camera_table.pop("coating_tints", []), "tables {interface = k, rgb = [r, g, b]}")):
             entry = _check_keys(f"camera.coating_tints[{k}]", entry, {"interface": "", "rgb": ""})
             if "interface" not in entry or "rgb" not in entry:
                 fail(f"camera.coating_tints[{k}]", "needs interface = k and rgb = [r, g, b]")
@@ -128,7 +134,10 @@ def scene_from_dict(data: Mapping[str, Any], source: str | None = None) -> Scene
                 spectrum = _check_keys(f"light[{k}].spectrum", table["spectrum"], {"wavelengths_nm": "", "values": ""})
                 if "wavelengths_nm" not in spectrum or "values" not in spectrum:
                     fail(f"light[{k}].spectrum", "needs wavelengths_nm = [...] and values = [...]")
-                table["spectrum"] = (tuple(spectrum["wavelengths_nm"]), tuple(spectrum["values"]))
+                table["spectrum"] = (
+                    tuple(sequence(f"light[{k}].spectrum.wavelengths_nm", spectrum["wavelengths_nm"], "wavelengths in nm")),
+                    tuple(sequence(f"light[{k}].spectrum.values", spectrum["values"], "numbers")),
+                )
             lights.append(Light(**table))
         settings = RenderSettings(**_check_keys("render", data.get("render", {}), RENDER_KEYS))
         meshes = []
@@ -161,11 +170,9 @@ def load_scene(path: str | os.PathLike) -> Scene:
     path = os.fspath(path)
     if path == "demo":
         path = demo_scene_path()
+    text = decode_text(read_input_bytes(path, "scene file", SceneError), path, "scene file", SceneError)
     try:
-        with open(path, "rb") as handle:
-            data = tomllib.load(handle)
-    except FileNotFoundError:
-        raise FileNotFoundError(f"scene file not found: {path}") from None
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise SceneError(f"{path}: not valid TOML: {error}") from None
     return scene_from_dict(data, source=path)

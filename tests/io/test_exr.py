@@ -262,6 +262,44 @@ def test_read_missing_and_non_exr(tmp_path):
             read_exr(truncated)
 
 
+def test_layer_pixel_types_keep_a_float_layer_in_a_half_file(tmp_path):
+    """A variance (a luminance squared, ~1e-9) underflows to 0 in float16; a float32 layer in a
+    half file keeps it exactly, and OpenEXR's own reader sees the two pixel types."""
+    layers = {"": _image(4), "variance": np.full((H, W, 1), 3e-9, np.float32)}
+    write_exr(tmp_path / "mixed.exr", layers, pixel_type="half", layer_pixel_types={"variance": "float"})
+    back, header = read_exr(tmp_path / "mixed.exr")
+    np.testing.assert_array_equal(back["variance"], layers["variance"])
+    np.testing.assert_array_equal(back[""], layers[""].astype(np.float16).astype(np.float32))
+    assert header[HALF_CLIPPED_ATTRIBUTE] == 0
+    kinds = {name: channel.pixels.dtype for name, channel in OpenEXR.File(str(tmp_path / "mixed.exr"), separate_channels=True).channels().items()}
+    assert kinds["variance.Y"] == np.float32 and kinds["R"] == np.float16
+    write_exr(tmp_path / "all_half.exr", layers, pixel_type="half")
+    assert not np.any(read_exr(tmp_path / "all_half.exr")[0]["variance"])  # what the override prevents
+    for bad, match in (({"nope": "float"}, "not among the layers"), ({"variance": "double"}, "must be one of")):
+        with pytest.raises(ValueError, match=match):
+            write_exr(tmp_path / "bad.exr", layers, layer_pixel_types=bad)
+
+
+def test_chromaticities_and_white_luminance_are_standard_attributes(tmp_path):
+    """OpenEXR's own reader (and OpenImageIO, where installed) read the declared colour space."""
+    from jaxflare.colour import colour_space_chromaticities
+
+    rec709 = colour_space_chromaticities("srgb-linear")
+    np.testing.assert_allclose(rec709, (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290), atol=1e-4)
+    write_exr(tmp_path / "c.exr", {"": _image(3)}, chromaticities=rec709, white_luminance=100.0)
+    header = OpenEXR.File(str(tmp_path / "c.exr")).header()
+    np.testing.assert_allclose(header["chromaticities"], rec709, atol=1e-6)
+    assert header["whiteLuminance"] == pytest.approx(100.0)
+    for bad in ((0.64, 0.33), (float("nan"),) * 8):
+        with pytest.raises(ValueError, match="chromaticities"):
+            write_exr(tmp_path / "bad.exr", {"": _image(3)}, chromaticities=bad)
+    with pytest.raises(ValueError, match="white_luminance"):
+        write_exr(tmp_path / "bad.exr", {"": _image(3)}, white_luminance=-1.0)
+    with pytest.raises(ValueError, match="reserved"):
+        write_exr(tmp_path / "bad.exr", {"": _image(3)}, header={"chromaticities": "ACEScg"})
+    assert not (tmp_path / "bad.exr").exists()
+
+
 # ----------------------------------------------------------------------------------------- preview
 
 ACESCG_TO_SRGB = np.array(

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+import jaxflare
 from jaxflare.optics import (
     AIR,
     CoatingSpec,
@@ -213,7 +214,7 @@ def dummy_surfaces() -> LensPrescription:
         surfaces=(
             surf(math.inf, 2.0, AIR, 20.0, "entrance baffle"),
             surf(40.0, 5.0, MediumSpec(glass="N-BK7"), math.nan, "no semi-aperture given"),
-            surf(math.inf, 0.0, MediumSpec(glass="N-BK7"), math.nan, "dummy inside the glass"),
+            surf(math.inf, 0.0, MediumSpec(glass="N-BK7"), 12.0, "dummy inside the glass"),  # (without an aperture it is dropped)
             surf(-40.0, 3.0, AIR, 14.0, "back"),
             surf(math.inf, 10.0, AIR, 7.0, "stop", is_stop=True),
             surf(math.inf, 25.0, AIR, 30.0, "flare cutter"),
@@ -274,9 +275,11 @@ def test_fixture_double_gauss_reads_as_expected():
     assert [s.radius_mm for s in p.surfaces] == [33.5, 128.0, 19.8, 52.0, 13.4, math.inf, -15.6, 48.0, -21.2, 95.0, -55.0]
     assert [s.thicknesses_mm[0] for s in p.surfaces] == [4.6, 0.3, 6.2, 1.6, 5.8, 5.4, 1.6, 6.0, 0.3, 4.4, 37.6]
     assert p.surfaces[-1].thicknesses_mm == (37.6,)  # the sensor distance
-    assert [s.semi_aperture_mm for s in p.surfaces] == [15.0, 14.5, 13.0, 11.5, 9.6, 8.9, 8.8, 10.6, 11.0, 12.4, 12.6]
-    assert p.surfaces[0].medium == MediumSpec(glass="N-SK16", n_d=1.62041, v_d=60.32)
-    # OpticStudio's never-set model-glass defaults (1.5, 40) are not stated values
+    # DIAM is a semi-diameter, MEMA the element's mechanical edge: a refracting surface clips at the
+    # larger; the stop at its DIAM (8.9)
+    assert [s.semi_aperture_mm for s in p.surfaces] == [15.0, 15.0, 13.0, 13.0, 13.0, 8.9, 11.0, 11.0, 11.0, 12.6, 12.6]
+    # the model-glass columns beside a catalog glass are leftovers, not stated values
+    assert p.surfaces[0].medium == MediumSpec(glass="N-SK16")
     assert p.surfaces[3].medium == MediumSpec(glass="F5")
     assert p.surfaces[7].medium == MediumSpec(n_d=1.6935, v_d=53.2)  # GLAS ___BLANK
     assert p.surfaces[1].medium.is_air
@@ -416,7 +419,7 @@ def test_singlet_basics():
     assert p.stated_f_number == 4.0
     assert p.design_wavelength_nm == 587.5618
     assert [s.radius_mm for s in p.surfaces] == [50.0, -200.0]
-    assert p.surfaces[0].medium == MediumSpec(glass="N-BK7", n_d=1.5168, v_d=64.17)
+    assert p.surfaces[0].medium == MediumSpec(glass="N-BK7")  # the model columns of a catalog glass are not read
     assert p.surfaces[0].is_stop and p.surfaces[1].thicknesses_mm == (95.0,)
     assert p.glass_catalogs == () and p.path == "" and p.source == ""
     assert p.surfaces[1].label == "<string>:19: SURF 2 (surface 1)"
@@ -440,8 +443,9 @@ def test_missing_or_zero_diam_gives_nan_and_clap_sets_the_aperture():
         ("GLAS N-SF6 0 0 1.5 40 0 0 0 0 0 0", MediumSpec(glass="N-SF6")),  # never-set defaults
         ("GLAS N-SF6 0 0 0 0 0 0 0 0 0 0", MediumSpec(glass="N-SF6")),
         ("GLAS N-SF6", MediumSpec(glass="N-SF6")),
-        ("GLAS N-SF6 3 0 1.80518 25.36 0 0 0 0 0 0", MediumSpec(glass="N-SF6", n_d=1.80518, v_d=25.36)),  # substitute
-        ("GLAS S-TIH11 4 0 1.78472 25.68 0 0 0 0 0 0", MediumSpec(glass="S-TIH11", n_d=1.78472, v_d=25.68)),  # zero offset
+        ("GLAS N-SF6 3 0 1.80518 25.36 0 0 0 0 0 0", MediumSpec(glass="N-SF6")),  # substitute: leftover model columns
+        ("GLAS S-TIH11 4 0 1.78472 25.68 0 0 0 0 0 0", MediumSpec(glass="S-TIH11")),  # zero offset
+        ("GLAS N-LASF55 0 0 1.5168 64.17 0 0 0 0 0 0", MediumSpec(glass="N-LASF55")),  # stale columns are no stated values
     ],
 )
 def test_glass_records(glas, medium):
@@ -660,7 +664,6 @@ SURFACE_ERRORS = [
     ("  OBDC 0.5 0", "OBDC", None),
     ("  CLAP 2 10 0", "CLAP", None),
     ('  XDAT 1 5 0 0 1 0 0 ""', "XDAT", None),
-    ("  FOOB 1 2", "FOOB", None),
 ]
 
 
@@ -687,12 +690,11 @@ def test_unsupported_surface_constructs_name_line_and_keyword(line, keyword, _):
         ("  TYPE STANDARD\n  CURV 0.02 0 0 0 0 \"\"", "  TYPE TOROIDAL\n  CURV 0.02 0 0 0 0 \"\"\n  PARM 2 0.001", "PARM 2"),
         ("MODE SEQ", "MODE NSC", "MODE"),
         ("UNIT MM X W X CM MR CPMM", "UNIT FT X W X CM MR CPMM", "UNIT"),
-        ("FNUM 4 0", "FROB 4 0", "FROB"),
         ("FNUM 4 0", "  DISZ 4", "DISZ"),  # a surface record before any SURF
         ("  DISZ 0", "  DISZ 0\nNSOH STANDARD 0 0", "NSOH"),
     ],
     ids=["mirror", "glass-offset", "glass-solve", "infinite-middle", "infinite-sensor", "evenasph-r2", "toroid", "toroidal-y2",
-         "mode-nsc", "unit", "unknown-system-keyword", "stray-surface-record", "non-sequential"],
+         "mode-nsc", "unit", "stray-surface-record", "non-sequential"],
 )
 def test_unsupported_constructs_name_line_and_keyword(old, new, keyword):
     text = SINGLET.replace(old, new, 1)
@@ -711,13 +713,21 @@ def test_unknown_keyword_after_the_surfaces_that_is_a_surface_keyword():
         parse_zmx(text, "bad.zmx")
 
 
-def test_merit_operands_are_only_accepted_after_the_surfaces():
-    assert len(parse_zmx(SINGLET + "QSUM 1 2 3\n").surfaces) == 2
-    text = SINGLET.replace("PWAV 1", "PWAV 1\nQSUM 1 2 3")
-    with pytest.raises(LensFormatError, match=r"bad.zmx:8: QSUM"):
-        parse_zmx(text, "bad.zmx")
+def test_merit_operands_and_unknown_records_are_skipped_and_listed():
+    p = parse_zmx(SINGLET + "QSUM 1 2 3\n")
+    assert len(p.surfaces) == 2 and "QSUM" not in p.notes  # a merit-function row after the surfaces
+    # an unknown keyword elsewhere is skipped, and the notes name it with its line
+    text = SINGLET.replace("PWAV 1", "PWAV 1\nQSUM 1 2 3\nFROB 4 0").replace("  DISZ 95", "  DISZ 95\n  FOOB 1 2")
+    p = parse_zmx(text, "bad.zmx")
+    assert [s.radius_mm for s in p.surfaces] == [50.0, -200.0]
+    assert f"QSUM (line {line_of(text, 'QSUM 1 2 3')})" in p.notes and f"FROB (line {line_of(text, 'FROB 4 0')})" in p.notes
+    assert f"FOOB (line {line_of(text, '  FOOB 1 2')})" in p.notes
+    # after MNUM every row is a configuration operand: an unknown one may change the optics
     with pytest.raises(LensFormatError, match=r"bad.zmx:\d+: ZZZZ"):
         parse_zmx(SINGLET + "MNUM 1 1\nZZZZ 1 1\n", "bad.zmx")
+    # a line that is no record at all
+    with pytest.raises(LensFormatError, match=r"bad.zmx:8: '\?\?': not a .zmx record"):
+        parse_zmx(SINGLET.replace("PWAV 1", "PWAV 1\n?? what"), "bad.zmx")
 
 
 def test_stop_errors():
@@ -774,3 +784,16 @@ def test_write_zmx_non_ascii_text_is_replaced(tmp_path):
     path = tmp_path / "x.zmx"
     write_zmx(p, path)
     assert read_zmx(path).name == "Objektiv f?r Tests ? 50 mm"
+
+
+def test_unknown_catalog_glass_is_an_error_naming_the_line_not_a_substitution(tmp_path):
+    """Issue 17: an unknown N-LASF55 with leftover model columns became n_d 1.5168 with only a
+    warning. The columns are no stated values: the load fails naming the file, line and glass,
+    with near matches and the way to map it (glass_aliases); the alias then loads it."""
+    path = tmp_path / "singlet.zmx"
+    path.write_text(SINGLET.replace("GLAS N-BK7 0 0 1.5168 64.17 0 0 0 0 0 0", "GLAS N-LASF55 0 0 1.5168 64.17 0 0 0 0 0 0"))
+    with pytest.raises(LensFormatError, match=r"^singlet\.zmx:\d+: SURF 1 \(surface 0\): unknown glass 'N-LASF55'.*glass_aliases") as info:
+        jaxflare.load_lens(path)
+    assert str(path) not in str(info.value)  # named once, not twice
+    lens = jaxflare.load_lens(path, glass_aliases={"N-LASF55": "SCHOTT:N-LASF45"})
+    assert lens.prescription.surfaces[0].medium.glass == "N-LASF45" and "N-LASF55" in lens.prescription.notes

@@ -250,7 +250,7 @@ def test_sensor_hits_weighting_is_the_papers_normalisation():
 
 def test_exr_round_trip(tmp_path):
     scene = make_scene(jf.Light(kind="directional", direction=(0.05, 0.02, -1.0)))
-    result = jf.render(scene, samples=2**16, method="exact", seed=15)
+    result = jf.render(scene, samples=2**17, method="exact", seed=15)
     path = result.write_exr(tmp_path / "flare.exr", pixel_type="float")
     layers, header = jf.read_exr(path)
     np.testing.assert_array_equal(layers[""], result.image)
@@ -261,10 +261,41 @@ def test_exr_round_trip(tmp_path):
     half_path = result.write_exr(tmp_path / "half.exr")
     half, _ = jf.read_exr(half_path)
     np.testing.assert_array_equal(half[""], result.image.astype(np.float16).astype(np.float32))
+    # the variance layer stays float32 in a half file: in float16 a luminance squared underflows
+    variance = result.layers["variance"]
+    assert np.count_nonzero(variance) > 0 and np.count_nonzero(variance.astype(np.float16)) < np.count_nonzero(variance)
+    np.testing.assert_array_equal(half["variance"], variance)
+    # a compositor's reader (OpenImageIO) sees the declared colour space: ACEScg = AP1 primaries, ACES white
+    oiio = pytest.importorskip("OpenImageIO")
+    spec = oiio.ImageInput.open(str(half_path)).spec()
+    ap1 = (0.713, 0.293, 0.165, 0.830, 0.128, 0.044, 0.32168, 0.33767)
+    np.testing.assert_allclose(spec.getattribute("chromaticities"), ap1, atol=1e-6)
+    assert spec.channelformat(spec.channelnames.index("variance.Y")) == oiio.FLOAT
+    assert spec.channelformat(spec.channelnames.index("R")) == oiio.HALF
     png = result.write_png(tmp_path / "flare.png")
     import matplotlib.image
 
     assert matplotlib.image.imread(png).shape[:2] == (96, 128)
+
+
+def test_brightest_allowed_light_gives_a_finite_variance_and_writes(tmp_path):
+    """Issue 17: a light of intensity 1e30 overflowed the float32 sums of squares, and the EXR
+    write failed after the whole render. Now the image is 1e30 x the unit light's, the variance
+    1e60 x (clipped to float32's range and counted, never Inf), and both pixel types write."""
+    light = {"kind": "directional", "direction": (0.08, 0.03, -1.0)}
+    unit = jf.render(make_scene(jf.Light(**light), render={"sampling": "uniform"}), samples=2**17, method="exact", seed=3)
+    bright = jf.render(make_scene(jf.Light(**light, intensity=1e30), render={"sampling": "uniform"}), samples=2**17, method="exact", seed=3)
+    np.testing.assert_allclose(bright.image[..., :3], 1e30 * unit.image[..., :3], rtol=1e-5, atol=1e-6 * 1e30 * unit.image.max())
+    variance = bright.layers["variance"]
+    assert np.all(np.isfinite(variance)) and variance.max() > 0
+    exact = 1e60 * unit.layers["variance"].astype(np.float64)
+    np.testing.assert_allclose(variance, np.minimum(exact, np.finfo(np.float32).max), rtol=1e-4)
+    info = next(layer for layer in bright.statistics["layers"] if layer["layer"] == "variance")
+    assert info["clipped_values"] == np.count_nonzero(exact > np.finfo(np.float32).max) > 0
+    for pixel_type in ("half", "float"):
+        layers, _ = jf.read_exr(bright.write_exr(tmp_path / f"bright_{pixel_type}.exr", pixel_type=pixel_type))
+        assert all(np.all(np.isfinite(v)) for v in layers.values())
+        np.testing.assert_array_equal(layers["variance"], variance)
 
 
 def test_spectral_and_blackbody_lights_are_coloured():

@@ -58,6 +58,21 @@ def test_python_and_toml_scenes_are_the_same():
         ("render", "quality", "ultra", r"render\.quality: must be one of 'preview', 'production'"),
         ("render", "colour_space", "XYZ", r"render\.colour_space"),
         ("render", "speed", 1, r"render\.speed: unknown key"),
+        # issue 17: values beyond physical bounds or stated maxima, scalars where lists belong
+        ("camera", "f_number", 0.1, r"camera\.f_number: must be >= 0\.5, got 0\.1"),
+        ("camera", "focus_distance_m", 0.001, r"camera\.focus_distance_m: .* cannot focus at 0\.001 m: the image would not lie behind the lens"),
+        ("camera", "aperture_blades", 1000, r"camera\.aperture_blades: must be at most 64, got 1,000"),
+        ("camera", "aperture_blades", 100000, r"camera\.aperture_blades: must be at most 64"),
+        ("camera", "surface_coatings", [{"surfaces": [1], "layers": [[0.5, 100.0]]}], r"layers\[0\]: must be \[index 1 \.\. 4, thickness_nm"),
+        ("camera", "surface_coatings", 3, r"camera\.surface_coatings: must be a list of tables"),
+        ("camera", "coating_tints", 3, r"camera\.coating_tints: must be a list of tables"),
+        ("camera", "resolution", 64, r"camera\.resolution: must be \[width, height\]"),
+        ("camera", "resolution", [16385, 100], r"camera\.resolution\[0\]: must be at most 16,384"),
+        ("light", "intensity", 1e31, r"light\[0\]\.intensity: must be at most 1e\+30"),
+        ("light", "intensity", 1e400, r"light\[0\]\.intensity: must be finite"),
+        ("light", "spectrum", {"wavelengths_nm": 500, "values": 1}, r"light\[0\]\.spectrum\.wavelengths_nm: must be a list"),
+        ("render", "samples", 2**63, r"render\.samples: must be at most 4,294,967,296"),
+        ("render", "max_flare_layers", 10**6, r"render\.max_flare_layers: must be at most 256"),
     ],
 )
 def test_bad_scenes_name_the_key_and_what_is_valid(section, key, value, message):
