@@ -83,7 +83,7 @@ def grid_result(plan: GridPlan, layers: np.ndarray, acc, path_samples: np.ndarra
         out["core"] = mapped[layers_plan.core]
         layer_info.append({"layer": "core", "paths": ["primary"]})
     out["variance"] = np.zeros((height, width, 1), np.float32)
-    layer_info.append({"layer": "variance", "paths": [], "meaning": "grid estimator: deterministic, no sampling variance (zero)"})
+    layer_info.append({"layer": "variance", "paths": [], "meaning": "grid estimator: deterministic, no sampling variance (zero)", "clipped_values": 0})
     flare_rgb = sum(mapped[slot] for slot in range(layers_plan.num_individual + 1))
     image = np.concatenate([flare_rgb, np.clip(np.max(flare_rgb, axis=-1, keepdims=True), 0.0, 1.0)], axis=-1).astype(np.float32)
 
