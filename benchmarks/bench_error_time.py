@@ -36,6 +36,7 @@ from _harness import (
 )
 
 import jaxflare
+from jaxflare import rendering
 from jaxflare.colour import display_matrix, spectral_table
 from jaxflare.io import tone_map
 
@@ -84,7 +85,7 @@ def main(argv=None) -> int:
 
     t0 = time.perf_counter()
     log("  rendering the reference (grid, fine) ...")
-    reference = jaxflare.rendering.render_grid(scene, "preview", grid_error=0.003, grid_options=REFERENCE_OPTIONS)
+    reference = rendering.render_grid(scene, "preview", grid_error=0.003, grid_options=REFERENCE_OPTIONS)
     reference_seconds = time.perf_counter() - t0
     ref = np.asarray(reference.image[..., :3], np.float64)
     lit = (ref @ luminance)[ref @ luminance > 0]
@@ -119,10 +120,10 @@ def main(argv=None) -> int:
         log(f"  MC preview seed-to-seed noise (relative to the reference's norm): {noise:.4f}")
     for label, options in GRID_CONFIGS[1:2] if args.quick else GRID_CONFIGS:
         t0 = time.perf_counter()
-        result = jaxflare.rendering.render_grid(scene, "preview", **options)
+        result = rendering.render_grid(scene, "preview", **options)
         cold = time.perf_counter() - t0
         t0 = time.perf_counter()
-        result = jaxflare.rendering.render_grid(scene, "preview", **options)
+        result = rendering.render_grid(scene, "preview", **options)
         warm = time.perf_counter() - t0
         log(f"  {label:28s} cold {cold:7.2f} s  warm {warm:7.2f} s  samples {result.statistics.samples:,}")
         measure(label, "grid", result, (cold, warm), repr(options))

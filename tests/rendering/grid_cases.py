@@ -10,6 +10,7 @@ import functools
 import numpy as np
 
 import jaxflare as jf
+from jaxflare import rendering
 from jaxflare.colour import spectral_table
 
 RESOLUTION = (64, 48)
@@ -25,7 +26,7 @@ def scene(lens="zeiss_biotar", direction=(0.04, 0.02, -1.0), blades=6, f_number=
 def grid(lens="zeiss_biotar", direction=(0.04, 0.02, -1.0), paths=((7, 4), (9, 7)), blades=6, f_number=8.0, options=(), square=False):
     """A grid render (``options``: GridQuality overrides as ((name, value), ...); ``square``: 64 x 64)."""
     s = scene(lens, direction, blades, f_number, resolution=(64, 64) if square else RESOLUTION)
-    return jf.rendering.render_grid(s, paths=list(paths), grid_error=1e-9, grid_options=dict(options))
+    return rendering.render_grid(s, paths=list(paths), grid_error=1e-9, grid_options=dict(options))
 
 
 @functools.cache

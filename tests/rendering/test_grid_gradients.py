@@ -7,19 +7,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import jaxflare as jf
+from jaxflare import rendering
 
 from .grid_cases import scene
 
 
 def image_loss(direction):
-    plan = jf.rendering.plan_grid(scene(direction=direction), paths=[(7, 4), (9, 7)], grid_error=1e-9)
-    prepared = jf.rendering.prepare_grid(plan)
+    plan = rendering.plan_grid(scene(direction=direction), paths=[(7, 4), (9, 7)], grid_error=1e-9)
+    prepared = rendering.prepare_grid(plan)
     weights = jnp.asarray(np.asarray(plan.spectral.luminance_weights), jnp.float32)
 
     def layers(tint):
         setup = eqx.tree_at(lambda s: s.path_tint, plan.setup, plan.setup.path_tint.at[0].set(tint))
-        return jf.rendering.grid_layers(setup, plan, prepared)[0]
+        return rendering.grid_layers(setup, plan, prepared)[0]
 
     start = jnp.ones(3, jnp.float32)
     target = 0.6 * jax.lax.stop_gradient(layers(start).sum(axis=0) @ weights)
