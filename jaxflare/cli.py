@@ -159,11 +159,11 @@ def _check_output(output: str, extension: str) -> None:
         raise ValueError(f"-o/--output {output!r}: the folder {existing!r} is not writable")
 
 
-def _render(scene_path: str, output: str, quality, seed: int, png: bool, samples, method) -> int:
+def _render(scene_path: str, output: str, quality, seed: int, png: bool, samples, method, estimator=None) -> int:
     from .rendering import render
 
     _check_output(output, ".exr")
-    result = render(scene_path, quality=quality, seed=seed, samples=samples, method=method, progress=True)
+    result = render(scene_path, quality=quality, seed=seed, samples=samples, method=method, progress=True, estimator=estimator)
     written = result.write_files(output, png=png)
     stats = result.statistics
     for path in written:
@@ -224,6 +224,7 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--png", action="store_true", help="also write a tone-mapped PNG preview beside the EXR")
     render.add_argument("--samples", type=_int_range(1, MAX_SAMPLES, "--samples"), default=None, help="total Monte Carlo samples, at most 2^32 (default: the quality's)")
     render.add_argument("--method", choices=["auto", "polynomial", "exact"], default=None, help="path evaluation (default: the scene's)")
+    render.add_argument("--estimator", choices=["monte-carlo", "grid"], default=None, help="monte-carlo or the deterministic grid (default: the scene's)")
 
     fit = commands.add_parser("fit", help="fit coating colours, dirt and light gains to a plate (package fitting)")
     fit.add_argument("plate", help="plate image: EXR (any layer), 16-bit PNG or TIFF, linear")
@@ -320,7 +321,7 @@ def _run(argv: list[str] | None) -> int:
         if args.command == "fit":
             return _fit(args)
         if args.command == "render":
-            return _render(args.scene, args.output, args.quality, args.seed, args.png, args.samples, args.method)
+            return _render(args.scene, args.output, args.quality, args.seed, args.png, args.samples, args.method, args.estimator)
         if args.lens_command == "list":
             from .io import bundled_lens_names
 

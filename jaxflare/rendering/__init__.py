@@ -1,5 +1,6 @@
 """Flare rendering: Monte Carlo over lights, lens paths and front-lens points (Pekkarinen & Balzer
-2019), in vmapped batches, with adaptive sampling, scene effects and multi-layer EXR output.
+2019), in vmapped batches, with adaptive sampling, scene effects and multi-layer EXR output; or
+deterministically, by the ray-grid estimator (:func:`render_grid`, after Hullin et al. 2011).
 
 The data flow is one-way: :func:`plan_render` decides everything before the batches (a typed
 :class:`RenderPlan`: lens, lights, paths with their tracers, layers, culling, sampling tables and
@@ -16,6 +17,8 @@ equation (2), splat) and returns a :class:`RenderResult` with typed :class:`Rend
 
 from . import effects
 from ._adaptive import SamplingTable, draw, masked_table, uniform_table
+from ._grid_plan import GridPlan, PreparedGrid, grid_layers, plan_grid, prepare_grid, run_grid
+from ._grid_render import clip_to_gamut, grid_result, render_grid
 from ._lights import LightArrays, light_arrays, light_rgb
 from ._path_sets import AbstractPathSet, AdaptivePathSet, UniformPathSet
 from ._plan import (
@@ -39,8 +42,24 @@ from ._plan import (
     render_settings,
     run_batches,
 )
-from ._quality import AUTO_MAX_FALLBACK, FALLBACK_CAPACITIES, QUALITY_LEVELS, RAYS_PER_STEP, TRUSTED_FOR_DEGREE, Quality, radiance_scale
-from ._records import SampleRecords, front_cosine, front_vertex_plane_xy, image_position, interpolate_rows, record_values, sample_records
+from ._quality import (
+    AUTO_MAX_FALLBACK,
+    FALLBACK_CAPACITIES,
+    QUALITY_LEVELS,
+    RAYS_PER_STEP,
+    TRUSTED_FOR_DEGREE,
+    Quality,
+    radiance_scale,
+)
+from ._records import (
+    SampleRecords,
+    front_cosine,
+    front_vertex_plane_xy,
+    image_position,
+    interpolate_rows,
+    record_values,
+    sample_records,
+)
 from ._render import render
 from ._result import PathStatistics, RenderResult, RenderStatistics, RenderWarning, render_result
 from ._sampling import Connections, FrontDisc, front_disc, sample_connections
@@ -64,9 +83,11 @@ __all__ = [
     "Connections",
     "CullingPlan",
     "FrontDisc",
+    "GridPlan",
     "LayerPlan",
     "LightArrays",
     "PathStatistics",
+    "PreparedGrid",
     "Quality",
     "RenderPlan",
     "RenderResult",
@@ -83,6 +104,7 @@ __all__ = [
     "build_path_systems",
     "choose_fallbacks",
     "choose_paths",
+    "clip_to_gamut",
     "cull_paths",
     "dirt_transmission",
     "draw",
@@ -92,6 +114,8 @@ __all__ = [
     "front_cosine",
     "front_disc",
     "front_vertex_plane_xy",
+    "grid_layers",
+    "grid_result",
     "hood_visible",
     "image_position",
     "interpolate_rows",
@@ -103,15 +127,19 @@ __all__ = [
     "load_st_map",
     "masked_table",
     "path_tints",
+    "plan_grid",
     "plan_render",
     "polynomial_path_sets",
+    "prepare_grid",
     "radiance_scale",
     "record_values",
     "render",
+    "render_grid",
     "render_result",
     "render_settings",
     "render_step",
     "run_batches",
+    "run_grid",
     "sample_connections",
     "sample_records",
     "scene_effects",

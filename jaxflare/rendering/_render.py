@@ -43,7 +43,8 @@ from collections.abc import Callable, Sequence
 
 from .._limits import MAX_SEED
 from ..optics import GhostPath
-from ..scenes import Scene
+from ..scenes import ESTIMATORS, Scene, load_scene
+from ._grid_render import render_grid
 from ._plan import plan_render, run_batches
 from ._result import RenderResult, render_result
 
@@ -57,6 +58,7 @@ def render(
     method: str | None = None,
     paths: Sequence[GhostPath] | None = None,
     progress: bool | Callable[[int, int], None] = False,
+    estimator: str | None = None,
 ) -> RenderResult:
     """Render the flares of ``scene`` (a :class:`Scene` or a scene TOML path).
 
@@ -68,12 +70,24 @@ def render(
         method: ``"exact"``, ``"polynomial"`` or ``"auto"`` (default the scene's).
         paths: render only these ghost paths ``(j, i)`` (default: every two-reflection path).
         progress: True for a progress bar on stderr, or a callable ``(batches_done, batches)``.
+        estimator: ``"monte-carlo"`` (random samples, the default) or ``"grid"`` (the deterministic
+            ray-grid estimator, :mod:`._grid`: noise-free; ``samples`` and ``method`` do not apply);
+            default the scene's ``[render] estimator``.
 
     Returns:
         A :class:`RenderResult` (image, layers, statistics; ``write_exr``/``write_png``).
     """
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
         raise ValueError(f"seed must be an integer from 0 to {MAX_SEED:,}, got {seed!r}")
+    if not isinstance(scene, Scene):
+        scene = load_scene(scene)
+    chosen = estimator if estimator is not None else scene.render.estimator
+    if chosen not in ESTIMATORS:
+        raise ValueError(f"estimator: must be one of {', '.join(repr(e) for e in ESTIMATORS)}, got {chosen!r}")
+    if chosen == "grid":
+        if samples is not None or method is not None:
+            raise ValueError("estimator='grid' traces exactly on its own grid: samples= and method= apply to estimator='monte-carlo' only")
+        return render_grid(scene, quality, seed, paths=paths)
     plan = plan_render(scene, quality, seed, samples=samples, method=method, paths=paths, progress=progress is True)
     render_started = time.perf_counter()
     acc, table_updates = run_batches(plan, progress)

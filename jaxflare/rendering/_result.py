@@ -317,7 +317,7 @@ def render_result(plan, acc, render_seconds: float, table_updates: int, *, time_
             quality=settings.quality, method=settings.method, fresnel=settings.fresnel, weights=settings.weights, sampling=settings.sampling,
             colour_space=plan.colour_space, seed=int(plan.seed), wavelength_strata=level.wavelength_strata,
             polynomial_degrees=list(level.degrees), tolerance_px=level.tolerance_px, f_number=camera.f_number, aperture_blades=lens.aperture_blades,
-            cull_threshold=settings.cull_threshold,
+            cull_threshold=settings.cull_threshold, estimator="monte-carlo",
         ),
         paths=[
             PathStatistics(

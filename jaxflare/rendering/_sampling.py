@@ -56,14 +56,17 @@ def front_disc(lens) -> FrontDisc:
 
 def sample_connections(
     lights: LightArrays, front: FrontDisc, spectral, key: Array, count: int, wavelength_strata: int,
-    light: Array | None = None, front_unit: Array | None = None,
+    light: Array | None = None, front_unit: Array | None = None, light_unit: Array | None = None,
 ) -> Connections:
     """``count`` connections between a point on a light and a point on the front lens.
 
     ``light`` (N,) fixes each sample's light (else it is drawn by ``selection_probability`` and the
     flux divided by that probability); ``front_unit`` (N, 2) fixes the front-lens point on the unit
-    disc (else uniform), which :class:`FrontDisc` maps onto the entrance plane. The flux is the
-    radiometric factor over the pdf of the light point and of a uniform front point.
+    disc (else uniform), which :class:`FrontDisc` maps onto the entrance plane. ``light_unit``
+    (N, 2) fixes the point on the light the same way: a point of the unit disc, mapped onto a disc
+    or sphere light's disc by area, or onto a directional light's cone by solid angle (else
+    uniform). The flux is the radiometric factor over the pdf of the light point and of a uniform
+    front point (the deterministic grid estimator weighs fixed points by their share of the area).
     """
     dtype = lights.axis.dtype
     k_light, k_light_point, k_front, k_wave = jax.random.split(key, 4)
@@ -71,7 +74,12 @@ def sample_connections(
     if chosen:
         light = jax.random.choice(k_light, lights.kind.shape[0], (count,), p=lights.selection_probability)
     kind = lights.kind[light]
-    u = jax.random.uniform(k_light_point, (count, 2), dtype)
+    if light_unit is None:
+        u = jax.random.uniform(k_light_point, (count, 2), dtype)
+    else:  # a point of the unit disc: u0 = rho^2 (area, or solid angle in a cone), u1 = angle / 2 pi
+        light_unit = jnp.broadcast_to(jnp.asarray(light_unit, dtype), (count, 2))
+        angle = jnp.arctan2(light_unit[:, 1], light_unit[:, 0])
+        u = jnp.stack([jnp.clip(jnp.sum(light_unit**2, axis=-1), 0.0, 1.0), jnp.where(angle < 0, angle + 2 * jnp.pi, angle) / (2 * jnp.pi)], axis=-1)
 
     # a point on the light (finite lights) or a direction in its cone (directional lights)
     normal = lights.normal[light]

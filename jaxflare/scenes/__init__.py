@@ -11,6 +11,7 @@ physically. Builds on :mod:`jaxflare.optics`, :mod:`jaxflare.colour` and :mod:`j
 from ._camera import camera_lens, sensor_size_mm
 from ._checks import SceneError
 from ._model import (
+    ESTIMATORS,
     EXR_COMPRESSIONS,
     EXR_PIXEL_TYPES,
     FRESNEL_MODELS,
@@ -41,6 +42,7 @@ from ._toml import CAMERA_KEYS, LIGHT_KEYS, RENDER_KEYS, demo_scene_path, load_s
 
 __all__ = [
     "CAMERA_KEYS",
+    "ESTIMATORS",
     "EXR_COMPRESSIONS",
     "EXR_PIXEL_TYPES",
     "FRESNEL_MODELS",

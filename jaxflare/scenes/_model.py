@@ -58,6 +58,7 @@ METHODS = ("auto", "polynomial", "exact")
 FRESNEL_MODELS = ("schlick", "exact")
 WEIGHTINGS = ("all-samples", "sensor-hits")
 SAMPLINGS = ("adaptive", "uniform")
+ESTIMATORS = ("monte-carlo", "grid")
 EXR_PIXEL_TYPES = ("half", "float")
 EXR_COMPRESSIONS = ("none", "rle", "zips", "zip", "piz", "pxr24", "b44", "b44a", "dwaa", "dwab")
 MAX_LIGHT_FIELD_ANGLE_DEG = 85.0
@@ -287,6 +288,9 @@ class RenderSettings:
     proportion to the radiance they carry, learnt from a pilot and updated as the render goes) or
     ``"uniform"``; ``cull_threshold``: flares whose energy is provably below this fraction of the
     brightest are not rendered (0 renders every path).
+    ``estimator``: ``"monte-carlo"`` (random samples, unbiased, the default) or ``"grid"`` (the
+    deterministic ray-grid estimator after Hullin et al. 2011: noise-free, exact tracing; it ignores
+    ``samples``, ``method``, ``sampling`` and ``weights``).
     """
 
     quality: str = "preview"
@@ -302,6 +306,7 @@ class RenderSettings:
     exr_compression: str = "zip"
     sampling: str = "adaptive"
     cull_threshold: float = 1e-3
+    estimator: str = "monte-carlo"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -482,6 +487,7 @@ def check_settings(settings: RenderSettings, where: str = "render") -> None:
     cull = number(f"{where}.cull_threshold", settings.cull_threshold, minimum=0.0)
     if cull >= 1:
         fail(f"{where}.cull_threshold", f"is a fraction of the brightest flare and must be < 1, got {cull:g}")
+    choice(f"{where}.estimator", settings.estimator, ESTIMATORS)
     choice(f"{where}.exr_pixel_type", settings.exr_pixel_type, EXR_PIXEL_TYPES)
     choice(f"{where}.exr_compression", settings.exr_compression, EXR_COMPRESSIONS)
 

@@ -4,7 +4,7 @@ ray casts) and the main render's distortion (Brown-Conrady or an ST-map), each a
 from ._bilinear import bilinear
 from ._dirt import DIRT_FORMATS, dirt_transmission, load_dirt_map
 from ._distortion import AbstractDistortion, BrownConrady, STMap, distort, identity_st_map, load_st_map, st_map_distort
-from ._hood import hood_crossing, hood_visible
+from ._hood import hood_crossing, hood_inside, hood_visible
 from ._occluders import SUPPORTED_EXTENSIONS, OcclusionWarning, Occluders, embree_available, lens_to_world, load_occluders, segment_visibility
 from ._scene_effects import SceneEffects, cached_occluders, scene_effects
 
@@ -23,6 +23,7 @@ __all__ = [
     "distort",
     "embree_available",
     "hood_crossing",
+    "hood_inside",
     "hood_visible",
     "identity_st_map",
     "lens_to_world",

@@ -27,10 +27,15 @@ def hood_visible(hood: Hood, origins_mm: Array, directions: Array) -> Array:
     opening (boundary included). Lens frame: ``origins_mm`` a point on each ray (e.g. on the
     entrance plane), ``directions`` its direction (need not be unit), shapes (..., 3). Rays with
     ``directions[..., 2] <= 0`` never reach the lens from the front and are reported blocked."""
-    xy = jax.lax.stop_gradient(hood_crossing(hood, origins_mm, directions))
+    xy = hood_crossing(hood, origins_mm, directions)
     travelling = jnp.asarray(directions)[..., 2] > 0
+    return hood_inside(hood, xy) & travelling
+
+
+def hood_inside(hood: Hood, xy: Array) -> Array:
+    """True where points of the hood's plane (lens frame x, y in mm, (..., 2)) lie in its opening
+    (boundary included). A 0/1 test: no gradient flows through it."""
+    xy = jax.lax.stop_gradient(jnp.asarray(xy))
     if hood.shape == "circular":
-        inside = jnp.sum(xy**2, axis=-1) <= hood.radius_mm**2
-    else:
-        inside = (jnp.abs(xy[..., 0]) <= hood.half_width_mm) & (jnp.abs(xy[..., 1]) <= hood.half_height_mm)
-    return inside & travelling
+        return jnp.sum(xy**2, axis=-1) <= hood.radius_mm**2
+    return (jnp.abs(xy[..., 0]) <= hood.half_width_mm) & (jnp.abs(xy[..., 1]) <= hood.half_height_mm)

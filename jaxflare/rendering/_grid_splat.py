@@ -1,0 +1,333 @@
+"""Spreading each grid cell's flux over its image: records and sub-samples (:mod:`._grid`).
+
+A *record* is one cell of one job (a light node, a path, a grid over the entrance plane) at one
+wavelength sub-node: its four corners' traced quantities interpolated to the sub-node's wavelength
+(:mod:`._grid_trace` columns), and how they change with the point on the light (a finite
+difference over the light's disc, averaged over the corners). A record holds ``s x s``
+sub-samples, the points of a regular lattice in the cell (a cell whose corners disagree about
+validity holds four, one per corner, each taking its own corner's values).
+
+Each sub-sample interpolates its cell's corners bilinearly (sensor position, stop-plane positions,
+clear-aperture margin, cosine, throughput, visibility), moves them to its own point on the light
+(a Kronecker sequence over the light's disc, linear in the finite differences), is clipped by the
+iris polygon on its interpolated stop positions and by the clear apertures on its interpolated
+margin (so rims and polygon edges stay crisp), and carries its share of the cell's entrance flux:
+the cell's area over the entrance disc's, times the light node's weight, times the sub-node's
+colour (the light's colour and the path's coated Fresnel factor averaged over its wavelength
+stratum). It is splatted with the one bilinear splat (:func:`._splat.splat`) into its layer at
+the path's image level (a full, half, quarter ... resolution image: smooth, dim ghosts are drawn
+coarser and upsampled).
+
+Everything is float32 with fixed shapes: one compiled loop over chunks of :data:`SUBSAMPLE_CHUNK`
+sub-samples per render structure.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from ..optics import inside_iris
+from ._grid_trace import COS, FLUX, FRONT, HOOD, MARGIN, MAX_STOP_PASSES, NUM_QUANTITIES, SENSOR, STOP, THROUGHPUT, VALID, VISIBLE
+from ._records import image_position
+from ._splat import splat
+from .effects import dirt_transmission, hood_inside
+
+LINEAR = 9
+"""Quantities that move with the point on the light (sensor x, y, stop x, y of three passes, margin)."""
+RECORD = 4 * NUM_QUANTITIES + 2 * LINEAR
+"""Floats per record: four corners, then the derivatives along the light's two axes."""
+SUBSAMPLE_CHUNK = 2**15
+"""Sub-samples per step of the splat loop."""
+LEVELS = (1, 2, 4, 8, 16)
+"""Image levels a path can be drawn at (pixels per level pixel along each axis)."""
+SUB_NODE_CHOICES = (1, 2, 4, 5, 8, 10, 16, 20, 32)
+"""Wavelength sub-nodes a piece can get (divisors of the colour table's band points)."""
+SUB_NODE_OFFSETS = {m: sum(SUB_NODE_CHOICES[: SUB_NODE_CHOICES.index(m)]) for m in SUB_NODE_CHOICES}
+"""Where each choice's sub-node colours start in a job's colour row."""
+COLOUR_ROW = sum(SUB_NODE_CHOICES)
+_KRONECKER = (0.7548776662466927, 0.5698402909980532)
+"""The R2 sequence's multipliers (1 / g, 1 / g^2, g the plastic number): a low-discrepancy
+sequence over the light's disc whose consecutive points are spread evenly."""
+
+
+def level_layout(width: int, height: int) -> tuple[tuple[int, int, int, int], ...]:
+    """Where each level's image lies in the packed buffer: (row0, column0, height, width).
+    Level 1 fills the top ``height`` rows; the coarser levels lie side by side below it."""
+    layout = [(0, 0, height, width)]
+    column = 0
+    for level in LEVELS[1:]:
+        h, w = -(-height // level), -(-width // level)
+        layout.append((height, column, h, w))
+        column += w
+    return tuple(layout)
+
+
+def packed_shape(width: int, height: int) -> tuple[int, int]:
+    layout = level_layout(width, height)
+    return height + layout[1][2], max(width, sum(w for _, _, _, w in layout[1:]))
+
+
+class JobTable(eqx.Module):
+    """Per job (a light node x a path x a grid), what its sub-samples share."""
+
+    path: Int[Array, " J"]
+    slot: Int[Array, " J"]
+    """Where the job's statistics go (its path in a render, the job itself in the pilot)."""
+    light: Int[Array, " J"]
+    layer: Int[Array, " J"]
+    level: Int[Array, " J"]
+    """Index into :data:`LEVELS`."""
+    passes: Int[Array, " J"]
+    """Stop passes of the path (1 or 3)."""
+    domain: Float[Array, "J 4"]
+    """u0, v0 (the grid's corner on the unit entrance disc) and the cell size du, dv."""
+    node: Float[Array, "J 2"]
+    """The light node (a point of the unit disc)."""
+    stratum: Float[Array, "J 4"]
+    """The node's stratum of the unit disc: inner and outer radius, first angle, angular span."""
+    step: Float[Array, " J"]
+    """The finite-difference step along the light's axes (0: a point light, no derivative)."""
+    weight: Float[Array, " J"]
+    """The node's share of its light (strata of equal area: 1 / nodes)."""
+    interleave: Int[Array, " J"]
+    """1: each wavelength sub-node's sub-sample lattice is shifted by its own Kronecker point (their
+    union is finer, so each may be sparser); 0: every lattice centred in its cells (symmetric)."""
+    colour: Float[Array, "J M 3"]
+    """Per wavelength sub-node of every sub-node choice (:data:`._grid_cells.SUB_NODE_OFFSETS`):
+    the light's RGB x (Schlick model) the path's on-axis coated Fresnel factor, averaged over the
+    sub-node's stratum of the band."""
+
+
+class RecordTable(eqx.Module):
+    """Records (cells x sub-nodes) and their sub-sample counts, in sub-sample order."""
+
+    values: Float[Array, "R F"]
+    job: Int[Array, " R"]
+    sub_node: Int[Array, " R"]
+    sub_nodes: Int[Array, " R"]
+    """How many sub-nodes the record's piece has (1: the whole band at once)."""
+    piece: Float[Array, "R 3"]
+    """The piece of the cell: its corner (a0, b0) and size, in cell units."""
+    side: Int[Array, " R"]
+    """Sub-samples per side (``side**2`` of them; a mixed cell has side 2, one per corner)."""
+    mixed: Array
+    end: Int[Array, " R"]
+    """Cumulative sub-sample count (exclusive end of each record's sub-samples)."""
+
+
+# --------------------------------------------------------------------------- records
+
+
+def record_values(rows: Array, corners: Array, bracket: Array, step: Array) -> Array:
+    """Record values (R, :data:`RECORD`) from vertex rows (N, Q): ``corners`` (R, 3, 2, 4) row
+    indices of the four corners at the two traced wavelengths that bracket the sub-node (for the
+    light's centre node and its two finite-difference points), ``bracket`` (R,) the weight of the
+    second wavelength, ``step`` (R,) the finite-difference step (0: none)."""
+    data = rows[corners]  # (R, 3, 2, 4, Q)
+    w = bracket[:, None, None, None]
+    at_wavelength = data[:, :, 0] * (1 - w) + data[:, :, 1] * w  # (R, 3, 4, Q)
+    base = at_wavelength[:, 0]
+    # a corner's derivative counts where it and its finite-difference point were traced through
+    both = (data[:, :, 0, :, VALID] * data[:, :, 1, :, VALID]).min(axis=1)  # (R, 4)
+    moves = []
+    safe = jnp.where(step > 0, step, 1.0)[:, None, None]
+    for f in (1, 2):
+        usable = (both * (step > 0)[:, None])[:, :, None]
+        difference = (at_wavelength[:, f, :, :LINEAR] - base[:, :, :LINEAR]) / safe
+        count = jnp.maximum(usable.sum(axis=1), 1.0)
+        moves.append(jnp.sum(jnp.where(usable > 0, difference, 0.0), axis=1) / count)
+    return jnp.concatenate([base.reshape(base.shape[0], -1), moves[0], moves[1]], axis=-1)
+
+
+RECORD_VALUES = eqx.filter_jit(record_values)
+
+
+# --------------------------------------------------------------------------- sub-samples
+
+
+def _kronecker(index: Array) -> tuple[Array, Array]:
+    """The R2 point of each integer index, exact in 32-bit arithmetic (fractions in [0, 1))."""
+    index = index.astype(jnp.uint32)
+    scale = 2.0**-32
+    a = jnp.uint32(int(_KRONECKER[0] * 2**32))
+    b = jnp.uint32(int(_KRONECKER[1] * 2**32))
+    half = jnp.uint32(2**31)
+    return (index * a + half).astype(jnp.float32) * scale, (index * b + half).astype(jnp.float32) * scale
+
+
+def chunk_records(records: RecordTable, first: Array, start: Array, count: int) -> Array:
+    """The record of each of ``count`` consecutive sub-samples from ``start``: ``first`` is the
+    record holding sub-sample ``start`` (the records' ends are sorted, so a chunk's records are
+    the ``count`` records from ``first`` on at most)."""
+    ends = jax.lax.dynamic_slice_in_dim(records.end, first, count) - start
+    marks = jnp.zeros(count + 1, jnp.int32).at[jnp.clip(ends, 0, count)].add(1)
+    return first + jnp.cumsum(marks[:count])
+
+
+def subsample_values(setup, jobs: JobTable, records: RecordTable, total: Array, start: Array, first: Array, count: int):
+    """``count`` sub-samples from global index ``start`` (``first``: the record holding it): their
+    layer, level, image position, RGB value (zero where they miss), hit mask, statistics slot,
+    entrance weight where they hit, and the value unclipped by the iris and clear apertures."""
+    index = start + jnp.arange(count, dtype=jnp.int32)
+    r = jnp.clip(chunk_records(records, first, start, count), 0, records.end.shape[0] - 1)
+    used = index < total
+    side = records.side[r]
+    local = index - (records.end[r] - side * side)
+    sub_node, sub_nodes = records.sub_node[r], records.sub_nodes[r]
+    job = records.job[r]
+    # each sub-node's lattice is shifted by its own Kronecker point (interleaved: their union is finer)
+    shift_a, shift_b = _kronecker(jnp.where(jobs.interleave[job] > 0, sub_node, 0))  # index 0: the centred lattice
+    mixed = records.mixed[r]
+    piece = records.piece[r]
+    a = piece[:, 0] + piece[:, 2] * (local % side + jnp.where(mixed, 0.5, shift_a)) / side
+    b = piece[:, 1] + piece[:, 2] * (local // side + jnp.where(mixed, 0.5, shift_b)) / side
+    wa = jnp.where(mixed, jnp.round(a), a)
+    wb = jnp.where(mixed, jnp.round(b), b)
+    values = records.values[r]
+    corners = values[:, : 4 * NUM_QUANTITIES].reshape(count, 4, NUM_QUANTITIES)
+    weights = jnp.stack([(1 - wa) * (1 - wb), wa * (1 - wb), (1 - wa) * wb, wa * wb], axis=-1)
+    q = jnp.einsum("sk,skq->sq", weights, corners)
+
+    # the sub-sample's point on the light: a Kronecker point of the node's stratum
+    k1, k2 = _kronecker(index)
+    inner, outer, angle0, span = (jobs.stratum[job, k] for k in range(4))
+    rho = jnp.sqrt(inner**2 + k1 * (outer**2 - inner**2))
+    phi = angle0 + k2 * span
+    offset = jnp.stack([rho * jnp.cos(phi), rho * jnp.sin(phi)], axis=-1) - jobs.node[job]
+    offset = jnp.where((jobs.step[job] > 0)[:, None], offset, 0.0)
+    move_s = values[:, 4 * NUM_QUANTITIES : 4 * NUM_QUANTITIES + LINEAR]
+    move_t = values[:, 4 * NUM_QUANTITIES + LINEAR :]
+    moved = q[:, :LINEAR] + offset[:, :1] * move_s + offset[:, 1:] * move_t
+
+    lens = setup.lens
+    passes = jobs.passes[job]
+    inside = jnp.ones(count, bool)
+    for p in range(MAX_STOP_PASSES):
+        x, y = moved[:, STOP + 2 * p], moved[:, STOP + 2 * p + 1]
+        through = inside_iris(x, y, lens.stop_radius_mm, lens.aperture_blades, lens.aperture_rotation_rad)
+        inside = inside & (through | (p >= passes))
+    valid = (q[:, VALID] > 0.999) & (moved[:, MARGIN] > 0) & inside
+
+    effects = setup.effects
+    factor = q[:, FLUX] * q[:, COS] * q[:, VISIBLE]
+    if effects.hood is not None:
+        factor = factor * jnp.where(hood_inside(effects.hood, q[:, HOOD : HOOD + 2]), 1.0, 0.0)
+    if not setup.schlick:
+        factor = factor * q[:, THROUGHPUT]
+    domain = jobs.domain[job]
+    area = domain[:, 2] * domain[:, 3] * piece[:, 2] ** 2 / jnp.pi
+    share = area / (side * side).astype(jnp.float32) * jobs.weight[job] / sub_nodes.astype(jnp.float32)
+    path = jobs.path[job]
+    offset = jnp.asarray(np.asarray([SUB_NODE_OFFSETS.get(m, 0) for m in range(max(SUB_NODE_OFFSETS) + 1)], np.int32))[sub_nodes]
+    colour = jobs.colour[job, offset + sub_node]
+    value = colour * (factor * share)[:, None] * setup.path_tint[path]
+    if effects.dirt is not None:
+        value = value * dirt_transmission(effects.dirt, q[:, FRONT : FRONT + 2], setup.front.radius_mm)
+
+    column, row = image_position(setup, moved[:, SENSOR : SENSOR + 2])
+    width, height = setup.resolution
+    on_sensor = (column >= 0) & (column < width) & (row >= 0) & (row < height)
+    reaches = used & on_sensor & setup.path_enabled[path]
+    hit = reaches & valid
+    # what the cell could carry at most: clipped by nothing but the image (the culling bound)
+    unclipped = jnp.where((reaches & (q[:, VALID] > 0.999))[:, None], value, 0.0)
+    value = jnp.where(hit[:, None], value, 0.0)
+    return jobs.layer[job], jobs.level[job], column, row, value, hit, jobs.slot[job], jnp.where(hit, share, 0.0), unclipped
+
+
+def _level_position(level: Array, column: Array, row: Array, width: int, height: int):
+    """Position in the packed buffer of a full-resolution position drawn at ``level``."""
+    layout = np.asarray(level_layout(width, height), np.float32)
+    scale = jnp.asarray(np.asarray(LEVELS, np.float32))[level]
+    row0, column0, h, w = (jnp.asarray(layout[:, k])[level] for k in range(4))
+    c = jnp.clip(column / scale, 0.5, w - 0.5) + column0
+    r = jnp.clip(row / scale, 0.5, h - 0.5) + row0
+    return c, r
+
+
+class GridAccumulators(eqx.Module):
+    buffer: Float[Array, "Y H W 3"]
+    """The packed level images of every layer (:func:`level_layout`)."""
+    path_energy: Float[Array, "P 3"]
+    path_hits: Float[Array, " P"]
+    """Sub-samples that reached the image."""
+    path_weight: Float[Array, " P"]
+    """Entrance-area weight of the sub-samples that reached the image (per path, summed over lights)."""
+    path_bound: Float[Array, "P 3"]
+    """What the path's cells could carry if the iris and the clear apertures clipped nothing."""
+
+
+@eqx.debug.assert_max_traces(max_traces=None)  # counts compilations: tests catch retracing with get_num_traces
+def splat_subsamples(
+    setup, jobs: JobTable, records: RecordTable, acc: GridAccumulators, total: Array, chunk_first: Array, chunks: Array
+) -> GridAccumulators:
+    """Every sub-sample of the records, in ``chunks`` chunks of :data:`SUBSAMPLE_CHUNK` (chunk
+    ``c`` starts in record ``chunk_first[c]``), splatted into the packed level images (a loop: one
+    compilation per render structure)."""
+    width, height = setup.resolution
+
+    def body(c, acc):
+        layer, level, column, row, value, hit, slot, share, unclipped = subsample_values(
+            setup, jobs, records, total, c * SUBSAMPLE_CHUNK, chunk_first[c], SUBSAMPLE_CHUNK
+        )
+        x, y = _level_position(level, column, row, width, height)
+        return GridAccumulators(
+            buffer=splat(acc.buffer, layer, x, y, value, hit),
+            path_energy=acc.path_energy.at[slot].add(value),
+            path_hits=acc.path_hits.at[slot].add(jnp.where(hit, 1.0, 0.0)),
+            path_weight=acc.path_weight.at[slot].add(share),
+            path_bound=acc.path_bound.at[slot].add(unclipped),
+        )
+
+    # a loop of static length (the bucketed chunk table) whose padding chunks are skipped at run
+    # time: reverse-mode differentiable, unlike a loop to the dynamic ``chunks``
+    return jax.lax.fori_loop(0, chunk_first.shape[0], lambda c, acc: jax.lax.cond(c < chunks, body, lambda c, acc: acc, c, acc), acc)
+
+
+SPLAT_SUBSAMPLES = eqx.filter_jit(splat_subsamples)
+
+
+def compose_levels(buffer: Array, width: int, height: int) -> Array:
+    """The full-resolution layers (Y, H, W, 3) of a packed buffer: every coarser level upsampled
+    bilinearly (its pixels' flux shared out over the full-resolution pixels) and added."""
+    layout = level_layout(width, height)
+    row0, column0, h, w = layout[0]
+    image = buffer[:, row0 : row0 + h, column0 : column0 + w]
+    x = jnp.arange(width, dtype=jnp.float32) + 0.5
+    y = jnp.arange(height, dtype=jnp.float32) + 0.5
+    for level, (r0, c0, lh, lw) in zip(LEVELS[1:], layout[1:]):
+        coarse = buffer[:, r0 : r0 + lh, c0 : c0 + lw]
+        fx = jnp.clip(x / level - 0.5, 0.0, lw - 1.0)
+        fy = jnp.clip(y / level - 0.5, 0.0, lh - 1.0)
+        x0 = jnp.clip(jnp.floor(fx).astype(jnp.int32), 0, max(lw - 2, 0))
+        y0 = jnp.clip(jnp.floor(fy).astype(jnp.int32), 0, max(lh - 2, 0))
+        tx, ty = fx - x0, fy - y0
+        x1, y1 = jnp.minimum(x0 + 1, lw - 1), jnp.minimum(y0 + 1, lh - 1)
+        rows = coarse[:, y0] * (1 - ty)[None, :, None, None] + coarse[:, y1] * ty[None, :, None, None]
+        up = rows[:, :, x0] * (1 - tx)[None, None, :, None] + rows[:, :, x1] * tx[None, None, :, None]
+        image = image + up / (level * level)
+    return image
+
+
+COMPOSE_LEVELS = jax.jit(compose_levels, static_argnums=(1, 2))
+
+
+def empty_grid_accumulators(num_layers: int, num_paths: int, width: int, height: int) -> GridAccumulators:
+    h, w = packed_shape(width, height)
+    return GridAccumulators(
+        buffer=jnp.zeros((num_layers, h, w, 3), jnp.float32),
+        path_energy=jnp.zeros((num_paths, 3), jnp.float32),
+        path_hits=jnp.zeros(num_paths, jnp.float32),
+        path_weight=jnp.zeros(num_paths, jnp.float32),
+        path_bound=jnp.zeros((num_paths, 3), jnp.float32),
+    )
+
+
+def chunk_count(total: int) -> int:
+    return max(1, math.ceil(total / SUBSAMPLE_CHUNK))
