@@ -103,10 +103,11 @@ def test_ctrl_c_exits_130_with_one_line_even_when_swallowed(monkeypatch, capsys)
         return "finished anyway"
 
     monkeypatch.setattr(cli, "_lens_info", swallowed)
+    handler_before = signal.getsignal(signal.SIGINT)  # pytest-xdist workers run with SIGINT ignored
     assert main(["lens", "info", "zeiss_biotar"]) == 130  # two interrupted renders exited 0
     captured = capsys.readouterr()
     assert captured.err.strip() == "jaxflare: interrupted"
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers restored
+    assert signal.getsignal(signal.SIGINT) is handler_before  # handlers restored
 
 
 def test_internal_errors_are_one_line_with_status_70(monkeypatch, capsys):
