@@ -396,3 +396,19 @@ def test_per_ray_event_tables_match_one_path_at_a_time(biotar):
         np.testing.assert_allclose(np.asarray(mixed.throughput)[rows], np.asarray(alone.throughput), rtol=1e-12, atol=1e-15)
         passes = alone.stop_positions.shape[1]
         np.testing.assert_allclose(np.asarray(mixed.stop_positions)[rows][:, :passes], np.asarray(alone.stop_positions), atol=1e-9)
+
+
+def test_nearby_batch_sizes_share_one_compilation(biotar):
+    """Batches are traced in size buckets (``ray_bucket``): 1000 and 1001 rays compile once, and
+    the padding never shows in the result."""
+    from jaxflare.optics._trace import ray_bucket
+
+    assert ray_bucket(1000) == ray_bucket(1001) == 1024 and ray_bucket(1) == 128
+    origins, directions = _parallel_rays(np.linspace(-3.0, 3.0, 1001))
+    first = jaxflare.trace(biotar, origins[:1000], directions[:1000], 550.0, (4, 1))
+    before = eqx.debug.get_num_traces(jaxflare.optics.trace_events.__wrapped__)
+    second = jaxflare.trace(biotar, origins, directions, 550.0, (4, 1))
+    assert eqx.debug.get_num_traces(jaxflare.optics.trace_events.__wrapped__) == before
+    assert second.positions.shape == (1001, 3) and first.positions.shape == (1000, 3)
+    np.testing.assert_array_equal(np.asarray(second.valid[:1000]), np.asarray(first.valid))
+    np.testing.assert_allclose(np.asarray(second.positions[:1000]), np.asarray(first.positions), atol=1e-12)
