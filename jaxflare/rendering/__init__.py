@@ -18,7 +18,8 @@ equation (2), splat) and returns a :class:`RenderResult` with typed :class:`Rend
 from . import effects
 from ._adaptive import SamplingTable, draw, masked_table, uniform_table
 from ._grid_plan import GridPlan, PreparedGrid, grid_layers, plan_grid, prepare_grid, run_grid
-from ._grid_render import clip_to_gamut, grid_result, render_grid
+from ._gamut import clip_to_gamut
+from ._grid_render import grid_result, render_grid
 from ._lights import LightArrays, light_arrays, light_rgb
 from ._path_sets import AbstractPathSet, AdaptivePathSet, UniformPathSet
 from ._plan import (

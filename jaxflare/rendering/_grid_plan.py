@@ -96,6 +96,10 @@ class GridPlan:
     pilot_seconds: float
     started: float
 
+    @property
+    def luminance_weights(self) -> np.ndarray:
+        return np.asarray(self.spectral.luminance_weights, np.float64)
+
 
 def grid_setup(lens, lights, front, spectral, effects, fresnel, tint, layer, flare, enabled, pitch, resolution, schlick) -> RenderSetup:
     return cast_floating(

@@ -20,6 +20,7 @@ from .._version import __version__
 from ..colour import colour_space_chromaticities, display_matrix, spectral_table
 from ..io import atomic_output_group, is_jaxflare_png, tone_map, write_exr, write_png
 from ..scenes import Scene
+from ._gamut import clip_to_gamut, gamut_clipped_fraction
 from ._quality import radiance_scale
 from ._step import luminance_norm
 
@@ -213,13 +214,104 @@ class RenderResult:
         return targets
 
 
+def gamut_mapped(plan, layers: np.ndarray) -> tuple[np.ndarray, float]:
+    """Every layer of ``layers`` (Y, H, W, 3; float64) through :func:`._gamut.clip_to_gamut`, as
+    float32, and the fraction of the default image's pixels that were outside the gamut before."""
+    luminance = np.asarray(plan.luminance_weights, np.float64)
+    outside = gamut_clipped_fraction(sum(layers[slot] for slot in range(plan.layers.num_individual + 1)))
+    mapped = np.stack([clip_to_gamut(layer, luminance) for layer in layers]).astype(np.float32)
+    return mapped, outside
+
+
+def named_layers(plan, layers: np.ndarray) -> tuple[dict[str, np.ndarray], list[dict]]:
+    """The EXR layers of a render (``layers``: (Y, H, W, 3), one slot per layer of the plan) by
+    name, and the description of each (which paths it holds) for the statistics."""
+    layers_plan, paths_all = plan.layers, plan.paths
+    named: dict[str, np.ndarray] = {}
+    info = []
+    for slot, k in enumerate(layers_plan.own):
+        name = f"flare_{paths_all[k][0]:02d}_{paths_all[k][1]:02d}"
+        named[name] = layers[slot]
+        info.append(dict(layer=name, paths=[list(paths_all[k])]))
+    merged_paths = [
+        list(paths_all[k]) for k in range(plan.num_flares) if layers_plan.layer_of_path[k] == layers_plan.merged and plan.culling.enabled[k]
+    ]
+    named["flares_merged"] = layers[layers_plan.merged]
+    info.append(dict(layer="flares_merged", paths=merged_paths))
+    if plan.settings.core:
+        named["core"] = layers[layers_plan.core]
+        info.append(dict(layer="core", paths=["primary"]))
+    return named, info
+
+
+def flare_image(plan, layers: np.ndarray) -> np.ndarray:
+    """The default image: the flare layers summed (RGB) and an alpha of their clipped peak."""
+    flare_rgb = sum(layers[slot] for slot in range(plan.layers.num_individual + 1))
+    return np.concatenate([flare_rgb, np.clip(np.max(flare_rgb, axis=-1, keepdims=True), 0.0, 1.0)], axis=-1).astype(np.float32)
+
+
+def frame_statistics(plan, layer_info: list[dict]) -> dict:
+    """The statistics every estimator reports the same way: the lens, the frame, the lights, the
+    paths and what culling dropped."""
+    lens, culling = plan.lens, plan.culling
+    brightest = culling.brightest_energy
+    return dict(
+        jaxflare_version=__version__,
+        lens=lens.name,
+        resolution=list(plan.scene.camera.resolution),
+        flare_paths=plan.num_flares,
+        paths_rendered=len(plan.paths),
+        culled_paths=int((~culling.enabled).sum()),
+        culled_energy_bound=float(culling.culled_energy_bound / max(brightest, 1e-300)) if brightest > 0 else 0.0,
+        f_number=float(lens.f_number()),
+        pixel_pitch_mm=float(plan.pixel_pitch_mm),
+        field_angle_deg=float(plan.field_angle_deg),
+        lights=[plan.scene.lights[k].name or f"light[{k}]" for k in plan.light_indices],
+        layers=layer_info,
+    )
+
+
+def hit_statistics(plan, path_samples: np.ndarray, hits: np.ndarray, passed: np.ndarray) -> dict:
+    """Pass and hit rates of the flare paths and the core over the samples each path drew."""
+    num_flares = plan.num_flares
+    flare_samples = max(1.0, float(path_samples[:num_flares].sum()))
+    return dict(
+        lens_pass_rate=float(passed[:num_flares].sum() / flare_samples),
+        sensor_hit_rate=float(hits[:num_flares].sum() / flare_samples),
+        core_hit_rate=float(hits[-1] / max(1.0, path_samples[-1])) if plan.settings.core else None,
+    )
+
+
+def path_statistics(
+    plan, path_energy, path_samples, hits, methods, to_radiance: float, *, polynomial_reports=None, untrusted_fraction=None, fallback_capacity=None
+) -> list[PathStatistics]:
+    """One :class:`PathStatistics` per path of the plan (``path_energy``: (P, 3) flux on the
+    sensor; the polynomial fields are None for paths traced exactly)."""
+    culling, pitch = plan.culling, plan.pixel_pitch_mm
+    luminance = np.asarray(plan.luminance_weights, np.float64)
+    count = len(plan.paths)
+    reports = polynomial_reports if polynomial_reports is not None else [None] * count
+    capacity = fallback_capacity if fallback_capacity is not None else [None] * count
+    return [
+        PathStatistics(
+            path="primary" if p is None else list(p), method=methods[k], enabled=bool(culling.enabled[k]),
+            energy=float(path_energy[k] @ luminance), rgb=[float(v) for v in path_energy[k]],
+            energy_bound=float(culling.energy_bound[k] * to_radiance * pitch * pitch), samples=int(path_samples[k]),
+            hit_rate=float(hits[k] / max(1.0, path_samples[k])),
+            polynomial_degree=None if reports[k] is None else int(reports[k].degree),
+            polynomial_validation_trusted_fraction=None if reports[k] is None else float(reports[k].trusted_fraction),
+            polynomial_untrusted_sample_fraction=None if reports[k] is None else float(untrusted_fraction[k]),
+            exact_fallback_capacity=None if capacity[k] is None else float(capacity[k]),
+        )
+        for k, p in enumerate(plan.paths)
+    ]
+
+
+
 def render_result(plan, acc, render_seconds: float, table_updates: int, *, time_now: float) -> RenderResult:
     """The image, layers and statistics of a finished render (the accumulators of its batches)."""
     settings, lens, pitch = plan.settings, plan.lens, plan.pixel_pitch_mm
-    layers_plan, culling = plan.layers, plan.culling
-    paths_all, num_flares, batches = plan.paths, plan.num_flares, plan.batches
-    width, height = plan.scene.camera.resolution
-    luminance = plan.luminance_weights
+    layers_plan, batches = plan.layers, plan.batches
 
     path_samples = np.asarray(acc.path_samples, np.float64)
     hits = np.asarray(acc.path_hits, np.float64)
@@ -246,22 +338,12 @@ def render_result(plan, acc, render_seconds: float, table_updates: int, *, time_
         flare_scale *= ratio
         if settings.core:
             scale[layers_plan.core] *= path_samples[-1] / max(hits[-1], 1.0)
-    layers_array = (np.asarray(acc.layers, np.float64) * scale[:, None, None, None]).astype(np.float32)
+    layers_array = np.asarray(acc.layers, np.float64) * scale[:, None, None, None]
     if not np.all(np.isfinite(layers_array)):
         raise FloatingPointError("the render produced non-finite pixels; please report this scene")
+    layers_array, out_of_gamut = gamut_mapped(plan, layers_array)
 
-    layers: dict[str, np.ndarray] = {}
-    layer_info = []
-    for slot, k in enumerate(layers_plan.own):
-        name = f"flare_{paths_all[k][0]:02d}_{paths_all[k][1]:02d}"
-        layers[name] = layers_array[slot]
-        layer_info.append(dict(layer=name, paths=[list(paths_all[k])]))
-    merged_paths = [list(paths_all[k]) for k in range(num_flares) if layers_plan.layer_of_path[k] == layers_plan.merged and culling.enabled[k]]
-    layers["flares_merged"] = layers_array[layers_plan.merged]
-    layer_info.append(dict(layer="flares_merged", paths=merged_paths))
-    if settings.core:
-        layers["core"] = layers_array[layers_plan.core]
-        layer_info.append(dict(layer="core", paths=["primary"]))
+    layers, layer_info = named_layers(plan, layers_array)
     if batches >= 2:
         # the accumulated luminances are in units of the brightest light's emission (_step.luminance_norm)
         norm = float(np.asarray(luminance_norm(plan.setup.lights), np.float64))
@@ -276,39 +358,23 @@ def render_result(plan, acc, render_seconds: float, table_updates: int, *, time_
         layer_info.append(
             dict(layer="variance", paths=[], meaning="per-pixel variance of the flare luminance estimate", clipped_values=variance_clipped)
         )
-    flare_rgb = sum(layers_array[slot] for slot in range(layers_plan.num_individual + 1))
-    image = np.concatenate([flare_rgb, np.clip(np.max(flare_rgb, axis=-1, keepdims=True), 0.0, 1.0)], axis=-1).astype(np.float32)
+    image = flare_image(plan, layers_array)
 
     path_energy = np.asarray(acc.path_energy, np.float64) * scale[layers_plan.layer_of_path][:, None] * pitch * pitch
-    flare_samples = path_samples[:num_flares].sum()
     methods, reports = plan.path_methods, plan.polynomial_reports
-    brightest = culling.brightest_energy
     level, camera = plan.quality, plan.scene.camera
     statistics = RenderStatistics(
-        jaxflare_version=__version__,
-        lens=lens.name,
-        resolution=[width, height],
+        **frame_statistics(plan, layer_info),
+        **hit_statistics(plan, path_samples, hits, passed),
         samples=int(drawn),
         pilot_samples=int(plan.pilot_samples.sum()),
         batches=int(batches),
         rays_per_batch=int(plan.samples_per_batch),
-        flare_paths=num_flares,
-        paths_rendered=len(paths_all),
-        culled_paths=int((~culling.enabled).sum()),
-        culled_energy_bound=float(culling.culled_energy_bound / max(brightest, 1e-300)) if brightest > 0 else 0.0,
         polynomial_paths=int(sum(m == "polynomial" for m in methods)),
         exact_paths=int(sum(m == "exact" for m in methods)),
         sampling=settings.sampling,
         table_updates=table_updates,
-        lens_pass_rate=float(passed[:num_flares].sum() / max(1.0, flare_samples)),
-        sensor_hit_rate=float(hits[:num_flares].sum() / max(1.0, flare_samples)),
-        core_hit_rate=float(hits[-1] / max(1.0, path_samples[-1])) if settings.core else None,
         unevaluated_fraction=dropped,
-        f_number=float(lens.f_number()),
-        pixel_pitch_mm=float(pitch),
-        field_angle_deg=float(plan.field_angle_deg),
-        lights=[plan.scene.lights[k].name or f"light[{k}]" for k in plan.light_indices],
-        layers=layer_info,
         setup_seconds=float(plan.setup_seconds),
         compile_seconds=float(plan.compile_seconds),
         render_seconds=float(render_seconds),
@@ -317,20 +383,11 @@ def render_result(plan, acc, render_seconds: float, table_updates: int, *, time_
             quality=settings.quality, method=settings.method, fresnel=settings.fresnel, weights=settings.weights, sampling=settings.sampling,
             colour_space=plan.colour_space, seed=int(plan.seed), wavelength_strata=level.wavelength_strata,
             polynomial_degrees=list(level.degrees), tolerance_px=level.tolerance_px, f_number=camera.f_number, aperture_blades=lens.aperture_blades,
-            cull_threshold=settings.cull_threshold, estimator="monte-carlo",
+            cull_threshold=settings.cull_threshold, estimator="monte-carlo", out_of_gamut_fraction=out_of_gamut,
         ),
-        paths=[
-            PathStatistics(
-                path="primary" if p is None else list(p), method=methods[k], enabled=bool(culling.enabled[k]),
-                energy=float(path_energy[k] @ luminance), rgb=[float(v) for v in path_energy[k]],
-                energy_bound=float(culling.energy_bound[k] * to_radiance * pitch * pitch), samples=int(path_samples[k]),
-                hit_rate=float(hits[k] / max(1.0, path_samples[k])),
-                polynomial_degree=None if reports[k] is None else int(reports[k].degree),
-                polynomial_validation_trusted_fraction=None if reports[k] is None else float(reports[k].trusted_fraction),
-                polynomial_untrusted_sample_fraction=None if reports[k] is None else float(plan.untrusted_fraction[k]),
-                exact_fallback_capacity=None if plan.fallback_capacity[k] is None else float(plan.fallback_capacity[k]),
-            )
-            for k, p in enumerate(paths_all)
-        ],
+        paths=path_statistics(
+            plan, path_energy, path_samples, hits, methods, to_radiance,
+            polynomial_reports=reports, untrusted_fraction=plan.untrusted_fraction, fallback_capacity=plan.fallback_capacity,
+        ),
     )
     return RenderResult(image=image, layers=layers, statistics=statistics, scene=plan.scene)

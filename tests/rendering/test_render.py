@@ -25,7 +25,7 @@ def make_scene(light=None, lights=None, render=None, **camera):
 
 
 def centroid(image):
-    luminance = image[..., :3].sum(axis=-1)
+    luminance = image[..., :3].sum(axis=-1) if image.ndim == 3 else image
     rows, columns = np.indices(luminance.shape)
     total = luminance.sum()
     return (columns * luminance).sum() / total + 0.5, (rows * luminance).sum() / total + 0.5
@@ -229,9 +229,11 @@ def test_layers_add_up_and_thresholds_split_them():
     assert result.layers["variance"].shape == (96, 128, 1) and np.all(result.layers["variance"] >= 0)
     np.testing.assert_allclose(sum(result.layers[n] for n in flares), result.image[..., :3], rtol=1e-5, atol=1e-7)
     assert np.all(np.isfinite(result.image))
-    # single-wavelength samples can fall outside the RGB gamut (slightly negative channels in noisy
-    # pixels), but their luminance never is
-    assert np.all(luminance(result.image) >= -1e-6 * luminance(result.image).max())
+    # single-wavelength samples fall outside the RGB gamut (negative channels in noisy pixels: before
+    # the gamut rule 5-20 % of the red and green values); every layer is mapped into it (_gamut)
+    assert 0.0 < result.statistics["settings"]["out_of_gamut_fraction"] < 1.0
+    for name, layer in result.layers.items():
+        assert layer.min() >= 0.0, name
     energies = {tuple(p["path"]): p["energy"] for p in result.statistics["paths"] if p["path"] != "primary"}
     own = [tuple(layer["paths"][0]) for layer in result.statistics["layers"] if layer["layer"].startswith("flare_")]
     merged = [tuple(p) for layer in result.statistics["layers"] if layer["layer"] == "flares_merged" for p in layer["paths"]]
@@ -313,7 +315,12 @@ def test_coating_tints_colour_their_paths():
     uniform = dict(sampling="uniform")
     plain = jf.render(make_scene(light, render=uniform), samples=2**16, method="exact", paths=[(7, 4), (5, 0)], seed=17)
     tinted = jf.render(make_scene(light, render=uniform, coating_tints=((7, (1.0, 0.5, 0.25)),)), samples=2**16, method="exact", paths=[(7, 4), (5, 0)], seed=17)
-    np.testing.assert_allclose(tinted.layers["flare_07_04"], plain.layers["flare_07_04"] * np.array([1.0, 0.5, 0.25]), rtol=1e-5, atol=1e-8)
+    # linear in the tint wherever the pixel is inside the gamut (a pixel with a zero channel was
+    # desaturated into it, which is not linear: _gamut); those hold a small share of the light
+    a, b = plain.layers["flare_07_04"], tinted.layers["flare_07_04"]
+    inside = (a.min(axis=-1) > 0) & (b.min(axis=-1) > 0)
+    assert a[inside].sum() > 0.9 * a.sum()
+    np.testing.assert_allclose(b[inside], a[inside] * np.array([1.0, 0.5, 0.25]), rtol=1e-5, atol=1e-8)
     np.testing.assert_allclose(tinted.layers["flare_05_00"], plain.layers["flare_05_00"], rtol=1e-6)
 
 
@@ -337,8 +344,10 @@ def test_polynomial_method_agrees_with_exact_tracing(tmp_path, monkeypatch):
     assert poly[0].statistics["polynomial_paths"] == 2 and poly[0].statistics["unevaluated_fraction"] < 0.01
     assert auto.statistics["polynomial_paths"] + auto.statistics["exact_paths"] == 2
     for name in ("flare_04_02", "core"):
-        e = [r.layers[name] for r in exact]
-        p = [r.layers[name] for r in poly]
+        # luminance: the gamut rule (_gamut) keeps it, not the channel sum, and the two methods'
+        # colour noise differs (here 44 % of the polynomial render's pixels were outside the gamut, 4 % of the exact one's)
+        e = [luminance(r.layers[name]) for r in exact]
+        p = [luminance(r.layers[name]) for r in poly]
         noise = abs(e[0].sum() - e[1].sum()) + abs(p[0].sum() - p[1].sum())
         assert abs((p[0] + p[1]).sum() - (e[0] + e[1]).sum()) < 3 * noise + 0.02 * (e[0] + e[1]).sum(), name
         spread = np.linalg.norm(np.subtract(centroid(e[0]), centroid(e[1]))) + np.linalg.norm(np.subtract(centroid(p[0]), centroid(p[1])))
