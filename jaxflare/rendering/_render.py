@@ -72,7 +72,9 @@ def render(
         progress: True for a progress bar on stderr, or a callable ``(batches_done, batches)``.
         estimator: ``"monte-carlo"`` (random samples, the default) or ``"grid"`` (the deterministic
             ray-grid estimator, :mod:`._grid`: noise-free; ``samples`` and ``method`` do not apply);
-            default the scene's ``[render] estimator``.
+            default the scene's ``[render] estimator`` -- except that ``samples`` or ``method``
+            given here make a scene's ``"grid"`` a Monte Carlo render (asking for both explicitly
+            is an error).
 
     Returns:
         A :class:`RenderResult` (image, layers, statistics; ``write_exr``/``write_png``).
@@ -82,6 +84,8 @@ def render(
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
     chosen = estimator if estimator is not None else scene.render.estimator
+    if estimator is None and chosen == "grid" and (samples is not None or method is not None):
+        chosen = "monte-carlo"  # a sample budget or a tracing method asked for is a Monte Carlo render
     if chosen not in ESTIMATORS:
         raise ValueError(f"estimator: must be one of {', '.join(repr(e) for e in ESTIMATORS)}, got {chosen!r}")
     if chosen == "grid":

@@ -134,6 +134,26 @@ class RenderStatistics(_Record):
         return {k: v for k, v in self.to_dict().items() if k not in ("settings", "paths")}
 
 
+PREVIEW_BLOCK_PX = 8
+"""The preview's exposure is set on the flare's luminance averaged over blocks of this many pixels
+a side, so that Monte Carlo's brightest single samples do not set it."""
+
+
+def preview_exposure_stops(luminance: np.ndarray) -> float:
+    """Exposure (stops) that puts the 99.5th percentile of the lit blocks' mean luminance at 1 (just
+    white): the brightest ghosts are bright, a dim veil over the frame stays dim, and a noisy and a
+    noise-free render of one scene get about the same exposure."""
+    height, width = luminance.shape
+    block = PREVIEW_BLOCK_PX
+    rows, columns = -(-height // block) * block, -(-width // block) * block
+    padded = np.zeros((rows, columns))
+    padded[:height, :width] = luminance
+    means = padded.reshape(rows // block, block, columns // block, block).mean(axis=(1, 3))
+    lit = means[means > 0]
+    level = float(np.percentile(lit, 99.5)) if lit.size else 0.0
+    return math.log2(1.0 / level) if level > 0 else 0.0
+
+
 @dataclasses.dataclass
 class RenderResult:
     """A rendered flare.
@@ -187,10 +207,7 @@ class RenderResult:
         colour_space = self.statistics.settings["colour_space"]
         flare = self.image[..., :3]
         if exposure_stops is None:  # expose for the flares: the core would otherwise set the exposure
-            luminance = flare @ np.asarray(spectral_table(colour_space).luminance_weights)
-            lit = luminance[luminance > 0]
-            level = float(np.percentile(lit, 99.5)) if lit.size else 0.0
-            exposure_stops = math.log2(4.0 / level) if level > 0 else 0.0
+            exposure_stops = preview_exposure_stops(flare @ np.asarray(spectral_table(colour_space).luminance_weights))
         rgb = flare + (self.layers["core"] if include_core and "core" in self.layers else 0.0)
         return tone_map(rgb, to_srgb_matrix=display_matrix(colour_space), exposure_stops=exposure_stops)
 
