@@ -226,6 +226,8 @@ def fit(
         )
     if not (isinstance(block, int) and block >= 1 and width % block == 0 and height % block == 0):
         raise ValueError(f"block must be a positive integer dividing the resolution {width} x {height}, got {block!r}")
+    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
+        raise ValueError(f"max_steps must be an integer of at least 1, got {max_steps!r}")
     _solver(solver, rtol, atol)  # a bad solver name fails before any rendering
     if fixed is not None:
         model = "path-images" if isinstance(fixed, PathImages) else "samples"

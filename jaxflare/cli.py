@@ -240,7 +240,7 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--method", default="exact", help="how the model's samples are traced: exact (default), polynomial or auto")
     fit.add_argument("--block", type=_int_range(1, 4096, "--block"), default=1, help="compare sums over BLOCK x BLOCK pixels (default 1; 4-8 for noisy plates)")
     fit.add_argument("--dirt-resolution", type=_int_range(1, 1024, "--dirt-resolution"), default=16, help="dirt map cells per side (default 16)")
-    fit.add_argument("--max-steps", type=_int_range(0, 100000, "--max-steps"), default=100)
+    fit.add_argument("--max-steps", type=_int_range(1, 100000, "--max-steps"), default=100, help="most solver steps (1 to 100000, default 100)")
 
     demo = commands.add_parser("demo", help="run the demo")
     demo.add_argument("--out", default="out/demo", help="output folder (default out/demo)")

@@ -61,6 +61,7 @@ def test_bad_lens_files_are_one_line_errors_naming_the_file(tmp_path, capsys):
         (["render", "demo", "-o", "x.exr", "--samples", str(2**63)], "--samples"),
         (["render", "demo", "-o", "x.exr", "--samples", "many"], "--samples"),
         (["lens", "info", "zeiss_biotar", "--glass", "nonsense"], "--glass"),
+        (["fit", "plate.exr", "--scene", "demo", "-o", "fit.json", "--max-steps", "0"], "--max-steps"),
     ],
 )
 def test_bad_arguments_exit_2_with_one_line(argv, needle, capsys):
