@@ -25,8 +25,12 @@ def test_adaptive_estimator_is_unbiased_and_hits_the_sensor_more_often():
     within the combined statistical error (3 standard errors)."""
     seeds = range(4)
     runs = {s: [jf.render(scene(s), samples=2**16, paths=PATHS, seed=seed) for seed in seeds] for s in ("uniform", "adaptive")}
+    weights = np.asarray(jf.colour.spectral_table("ACEScg").luminance_weights)
+
     def per_path(result):
-        return {str(p["path"]): p["energy"] for p in result.statistics["paths"]} | {"all flares": float(result.image[..., :3].sum())}
+        # the image's luminance: the gamut rule keeps it, while the channel sums it changes by an
+        # amount that depends on the noise (measured: 5.9 apart in 49 between the two samplings)
+        return {str(p["path"]): p["energy"] for p in result.statistics["paths"]} | {"all flares": float((result.image[..., :3] @ weights).sum())}
 
     for name in per_path(runs["uniform"][0]):
         values = {s: np.array([per_path(r)[name] for r in runs[s]]) for s in runs}
