@@ -268,6 +268,40 @@ def load_plate(
     return Plate(rgb=rgb, weight=weight, source=path, layer=layer)
 
 
+NEGATIVE_PIXEL_LIMIT = 0.5
+"""A pixel under the mask more negative than this fraction of the plate's peak is not noise."""
+
+
+def check_fittable(plate: Plate) -> None:
+    """Refuse a plate no flare can match: black or negative everywhere its weight is non-zero, a
+    negative total of light there, or a pixel far more negative than noise (a flare only adds
+    light: a plate with a subtracted background or a sign error). Small negative values, such as
+    a noisy dark background gives, are kept."""
+    used = plate.weight > 0
+    values = plate.rgb[used]
+    where = f"plate {plate.source}" + (f" (layer {plate.layer!r})" if plate.layer else "")
+    peak = float(values.max()) if values.size else 0.0
+    if not peak > 0:
+        raise ValueError(
+            f"{where}: no light where its weight is non-zero (it is black{' or negative' if values.size and values.min() < 0 else ''} "
+            "under the mask): there is no flare to fit; check the layer, the exposure or the mask"
+        )
+    total = values.sum(axis=0)
+    if np.any(total <= 0):
+        channel = "RGB"[int(np.argmin(total))]
+        raise ValueError(
+            f"{where}: the {channel} channel sums to {float(total.min()):.6g} under the mask; a flare only adds light, "
+            "so a plate's light cannot be negative (was a background subtracted from it?)"
+        )
+    lowest = plate.rgb.min(axis=-1)
+    worst = np.unravel_index(int(np.argmin(np.where(used, lowest, np.inf))), lowest.shape)
+    if lowest[worst] < -NEGATIVE_PIXEL_LIMIT * peak:
+        raise ValueError(
+            f"{where}: pixel (x={worst[1]}, y={worst[0]}) is {float(lowest[worst]):.6g}, below -{NEGATIVE_PIXEL_LIMIT} x the plate's peak "
+            f"{peak:.6g}; a flare only adds light and noise is not that negative: fix the plate or mask that pixel out"
+        )
+
+
 def save_plate(path: str | os.PathLike, rgb: np.ndarray, *, layer: str = "", pixel_type: str = "float") -> None:
     """Write ``rgb`` (``(H, W, 3)``, or ``(H, W)`` / ``(H, W, 1)`` grey, saved as a Y layer) to an
     EXR plate at ``path`` (float32 by default; ``pixel_type="half"`` for float16), in ``layer``

@@ -234,11 +234,11 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--solver", default=None, help="levenberg-marquardt (default), gauss-newton or bfgs")
     fit.add_argument("--layer", default=None, help="EXR layer of the plate (default: the default layer)")
     fit.add_argument("--mask", default=None, help="mask image: 1 where the plate shows flare to fit, 0 to ignore")
-    fit.add_argument("--samples", type=_int_range(1, MAX_SAMPLES, "--samples"), default=None, help="render samples of the fit's model (default 2^22 with path images, 2^19 with samples)")
+    fit.add_argument("--samples", type=_int_range(1, MAX_SAMPLES, "--samples"), default=None, help="Monte Carlo samples of the fit's model (default: the grid model, which has none; given, the model is Monte Carlo: 2^22 path images or 2^19 samples by default)")
     fit.add_argument("--seed", type=_int_range(0, MAX_SEED, "--seed"), default=0)
-    fit.add_argument("--model", default="auto", help="auto (default), path-images (coatings and lights only) or samples")
+    fit.add_argument("--model", default="auto", help="auto (default: grid), grid (deterministic ray grid), path-images (Monte Carlo, coatings and lights only) or samples (Monte Carlo)")
     fit.add_argument("--method", default="exact", help="how the model's samples are traced: exact (default), polynomial or auto")
-    fit.add_argument("--block", type=_int_range(1, 4096, "--block"), default=1, help="compare sums over BLOCK x BLOCK pixels (default 1; 4-8 for noisy plates)")
+    fit.add_argument("--block", type=_int_range(1, 4096, "--block"), default=None, help="compare sums over BLOCK x BLOCK pixels (default 4 where 4 divides the resolution, else 2, else 1)")
     fit.add_argument("--dirt-resolution", type=_int_range(1, 1024, "--dirt-resolution"), default=16, help="dirt map cells per side (default 16)")
     fit.add_argument("--max-steps", type=_int_range(1, 100000, "--max-steps"), default=100, help="most solver steps (1 to 100000, default 100)")
 
@@ -367,11 +367,11 @@ def _fit(args) -> int:
     path = fitting.save_fit(result, args.output)
     print(f"wrote {os.path.abspath(path)}")
     verdict = result.status if result.converged else f"{result.status} (returned the best parameters)"
-    print(f"{result.solver} on {result.model} ({result.samples} samples): {verdict}, {result.steps} steps in {result.seconds:.1f} s; "
+    print(f"{result.solver} on {result.model} ({result.samples} {'grid sub-samples' if result.model == 'grid' else 'samples'}): {verdict}, {result.steps} steps in {result.seconds:.1f} s; "
           f"loss {result.loss_history[0]:.6g} -> {min(result.loss_history):.6g}")
     if result.tint_std is not None:
         observable = result.as_dict()["observable_interfaces"]
-        print(f"interfaces the plate determines (tint standard error < {fitting.OBSERVABLE_STD}): {observable or 'none'}")
+        print(f"interfaces the plate determines (tint standard error without the prior < {fitting.OBSERVABLE_STD}): {observable or 'none'}")
     return 0 if result.converged else 1
 
 

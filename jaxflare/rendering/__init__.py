@@ -17,6 +17,7 @@ equation (2), splat) and returns a :class:`RenderResult` with typed :class:`Rend
 
 from . import effects
 from ._adaptive import SamplingTable, draw, masked_table, uniform_table
+from ._grid_model import GridFlareModel, grid_flare_model, scaled_lights
 from ._grid_plan import GridPlan, PreparedGrid, grid_layers, plan_grid, prepare_grid, run_grid
 from ._gamut import clip_to_gamut
 from ._grid_render import grid_result, render_grid
@@ -69,6 +70,9 @@ from ._step import STEP, Accumulators, RenderSetup, batch_records, empty_accumul
 from .effects import BrownConrady, SceneEffects, dirt_transmission, hood_visible, load_dirt_map, load_st_map, scene_effects
 
 __all__ = [
+    "GridFlareModel",
+    "grid_flare_model",
+    "scaled_lights",
     "AUTO_MAX_FALLBACK",
     "FALLBACK_CAPACITIES",
     "PILOT_STREAM",

@@ -145,7 +145,7 @@ def test_dirt_from_a_plate_rendered_with_another_seed(tmp_path):
 
 def test_bad_model_choices_are_clear_errors(plate_rgb, images):
     plate = fitting.Plate(rgb=plate_rgb, weight=np.ones(plate_rgb.shape[:2]), source="p", layer="")
-    with pytest.raises(ValueError, match="model must be one of auto, path-images, samples"):
+    with pytest.raises(ValueError, match="model must be one of auto, grid, path-images, samples"):
         fitting.fit(SCENE, plate, params=("coatings",), model="fast")
     with pytest.raises(ValueError, match="cannot fit the dirt map"):
         fitting.fit(SCENE, plate, params=("dirt",), model="path-images")

@@ -1,0 +1,147 @@
+"""The grid estimator as a differentiable model of a scene's flare: coating tints, the dirt map and
+light gains in, image out, with the grid itself (cells, sub-samples) fixed.
+
+A plate fit changes only what scales each grid sub-sample's value (equation (2) of Pekkarinen &
+Balzer 2019): the path's coating tint, the front-lens dirt transmission where the sub-sample
+enters, and its light's colour. The grid's geometry -- which cells are drawn, how finely, where
+their sub-samples land -- does not depend on them, so it is planned and traced once
+(:func:`grid_flare_model`) and the model re-splats the fixed records for any parameters
+(:meth:`GridFlareModel.image`). Unlike a Monte Carlo model it has no noise, so a least-squares fit
+through it is not biased towards dimmer tints, and its gradients are exact derivatives of a smooth
+function. With the dirt map fixed the flare is linear in the path tints and in the lights' RGB
+gains, so :meth:`GridFlareModel.path_images` gives one image per path and gain basis once, and a
+fit of coatings and lights needs only their weighted sums.
+
+Light gains scale a light's RGB colour per channel (a spectral light's brightness by their mean),
+as :func:`scaled_lights` does for the Monte Carlo records: the job colours are linear in that gain,
+so the model keeps one colour table per light and input channel and sums them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from ..scenes import Scene, load_scene
+from ._grid import job_table
+from ._grid_plan import GridPlan, plan_grid, prepare_grid
+from ._grid_splat import COMPOSE_LEVELS, JobTable, RecordTable, empty_grid_accumulators, splat_subsamples
+from ._lights import LightArrays
+from ._quality import radiance_scale
+from ._step import RenderSetup
+
+__all__ = ["GridFlareModel", "grid_flare_model", "scaled_lights"]
+
+
+def scaled_lights(lights: LightArrays, gain: Float[Array, "NL 3"]) -> LightArrays:
+    """Light arrays with each light's colour scaled by ``gain`` (NL, 3): RGB lights per channel,
+    spectral lights (a spectrum or a temperature) by the mean of their three gains."""
+    gain = jnp.asarray(gain).astype(lights.rgb.dtype)
+    return eqx.tree_at(lambda l: (l.rgb, l.spectral_rgb), lights, (lights.rgb * gain, lights.spectral_rgb * jnp.mean(gain, axis=1)[:, None, None]))
+
+
+def gain_basis(num_lights: int) -> np.ndarray:
+    """The unit gains of light k's input channel c (index ``3 k + c``): (3 NL, NL, 3)."""
+    basis = np.zeros((3 * num_lights, num_lights, 3))
+    for k in range(num_lights):
+        for c in range(3):
+            basis[3 * k + c, k, c] = 1.0
+    return basis
+
+
+class GridFlareModel(eqx.Module):
+    """A planned, traced grid render of a scene's flare paths (no core), re-splatted for any path
+    tints, dirt map and light gains. Built by :func:`grid_flare_model`."""
+
+    setup: RenderSetup
+    table: RecordTable
+    jobs: JobTable
+    colour_bases: Float[Array, "K J M 3"]
+    """Each job's sub-node colours for light gain basis ``K = 3 k + c`` (light k, input channel c
+    at gain 1, every other gain 0); their sum is the colour at unit gains."""
+    job_slot: Int[Array, " J"]
+    """Each job's flare path (its layer in :meth:`path_images`)."""
+    total: Int[Array, ""]
+    first: Int[Array, " C"]
+    chunks: Int[Array, ""]
+    to_radiance: Float[Array, ""]
+    """Splat units to pixel radiance (the camera equation), as the grid render applies."""
+    paths: tuple = eqx.field(static=True)
+    """The flare paths (j, i), in the order of the path axes."""
+    resolution: tuple[int, int] = eqx.field(static=True)
+    num_lights: int = eqx.field(static=True)
+    subsamples: int = eqx.field(static=True)
+    quality: str = eqx.field(static=True)
+
+    @property
+    def num_paths(self) -> int:
+        return len(self.paths)
+
+    def _splat(self, path_tint, dirt, light_gain, per_path: bool):
+        setup = self.setup
+        dtype = self.colour_bases.dtype
+        gains = jnp.ones((self.num_lights, 3), dtype) if light_gain is None else jnp.asarray(light_gain).astype(dtype)
+        colour = jnp.einsum("k,kjmc->jmc", gains.reshape(-1), self.colour_bases)
+        jobs = dataclasses.replace(self.jobs, colour=colour, layer=self.job_slot if per_path else jnp.zeros_like(self.job_slot))
+        effects = setup.effects if dirt is None else dataclasses.replace(setup.effects, dirt=jnp.asarray(dirt).astype(dtype))
+        setup = dataclasses.replace(setup, path_tint=jnp.asarray(path_tint).astype(dtype), effects=effects)
+        width, height = self.resolution
+        acc = empty_grid_accumulators(self.num_paths if per_path else 1, self.num_paths, width, height)
+        acc = splat_subsamples(setup, jobs, self.table, acc, self.total, self.first, self.chunks)
+        return COMPOSE_LEVELS(acc.buffer, width, height) * self.to_radiance
+
+    def image(self, path_tint: Float[Array, "P 3"], dirt: Float[Array, "Hd Wd C"] | None = None, light_gain: Float[Array, "NL 3"] | None = None):
+        """The flare (every flare path summed, H x W x 3, pixel radiance) for these path tints
+        (each path's coating colour, unit = the lens's own coatings), front-lens transmission map
+        (None: the scene's own) and light gains (None: 1). Differentiable in all three; jit it."""
+        return self._splat(path_tint, dirt, light_gain, per_path=False)[0]
+
+    def path_images(self, dirt=None, *, per_light_colour: bool = False):
+        """Each flare path's image at unit tint: (P, K, H, W, 3) with ``K = 3 NL`` gain bases
+        (light k, input channel c: ``3 k + c``) when ``per_light_colour``, else ``K = 1`` (unit
+        gains). The flare for path tints ``t`` and gains ``g`` is ``sum_p t_p sum_K g_K image_pK``."""
+        ones = jnp.ones((self.num_paths, 3), self.colour_bases.dtype)
+        if not per_light_colour:
+            return self._splat(ones, dirt, None, per_path=True)[:, None]
+        basis = gain_basis(self.num_lights)
+        return jnp.stack([self._splat(ones, dirt, jnp.asarray(b), per_path=True) for b in basis], axis=1)
+
+
+def _model_scene(scene) -> Scene:
+    """The scene as a model of its flare: no core (only flares are fitted), no culling (a fit may
+    brighten a path its tints make dim)."""
+    scene = scene if isinstance(scene, Scene) else load_scene(scene)
+    return dataclasses.replace(scene, render=dataclasses.replace(scene.render, core=False, cull_threshold=0.0))
+
+
+def grid_flare_model(
+    scene, quality: str | None = "production", *, paths=None, grid_error: float | None = None, grid_options: dict | None = None,
+) -> GridFlareModel:
+    """Plan and trace ``scene``'s flare with the grid estimator (as :func:`jaxflare.render_grid`
+    at ``quality``; ``paths``, ``grid_error`` and ``grid_options`` as for :func:`plan_grid`) and
+    keep the records, so :meth:`GridFlareModel.image` re-splats them for other parameters. The
+    grid is planned for the scene's own coatings, every flare path kept."""
+    plan: GridPlan = plan_grid(_model_scene(scene), quality, 0, paths=paths, grid_error=grid_error, grid_options=grid_options)
+    prepared = prepare_grid(plan).prepared
+    if prepared is None:
+        raise ValueError("the scene's flare paths put no light on the image: there is nothing to model")
+    setup = plan.setup
+    num_lights = int(setup.lights.kind.shape[0])
+    bases = []
+    for gain in gain_basis(num_lights):
+        gained = dataclasses.replace(setup, lights=scaled_lights(setup.lights, jnp.asarray(gain)))
+        bases.append(job_table(gained, plan.jobs, plan.path_fresnel, plan.spectral.band_nm).colour)
+    flare_paths = tuple(tuple(int(v) for v in p) for p in plan.paths)
+    return GridFlareModel(
+        setup=dataclasses.replace(setup, path_tint=jnp.ones_like(setup.path_tint)),
+        table=prepared.table, jobs=prepared.jobs, colour_bases=jnp.stack(bases), job_slot=prepared.jobs.path,
+        total=jnp.asarray(prepared.total, jnp.int32), first=jnp.asarray(prepared.first, jnp.int32), chunks=jnp.asarray(prepared.chunks, jnp.int32),
+        to_radiance=jnp.asarray(radiance_scale(plan.lens, plan.pixel_pitch_mm), jnp.float32),
+        paths=flare_paths, resolution=tuple(plan.scene.camera.resolution), num_lights=num_lights, subsamples=int(prepared.total),
+        quality=plan.quality_name,
+    )
+
