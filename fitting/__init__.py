@@ -1,5 +1,6 @@
 """Fitting flares to plates: recover coating colours, front-lens dirt and light gains from a
-reference flare image with optimistix, through jaxflare's differentiable renderer.
+reference flare image, or several plates of one lens, with optimistix, through jaxflare's
+deterministic grid estimator (or its Monte Carlo renderer).
 
     fitted = fitting.fit(scene, fitting.load_plate("plate.exr", expected_size=scene.camera.resolution))
     fitting.save_fit(fitted, "fitted.json")
@@ -13,6 +14,7 @@ from ._fit import (
     OBSERVABLE_STD,
     PARAMETERS,
     SOLVERS,
+    TINT_PRIOR_WEIGHTS,
     FitResult,
     FlareParameters,
     apply_fit,
@@ -29,6 +31,7 @@ __all__ = [
     "OBSERVABLE_STD",
     "PARAMETERS",
     "SOLVERS",
+    "TINT_PRIOR_WEIGHTS",
     "FitResult",
     "FixedSamples",
     "FlareParameters",

@@ -37,7 +37,7 @@ import optimistix as optx
 from jaxflare.io import atomic_output_group, write_exr
 from jaxflare.optics import cast_floating, ghost_paths
 from jaxflare.rendering import GridFlareModel, grid_flare_model
-from jaxflare.scenes import Light, camera_lens
+from jaxflare.scenes import Light, Scene, camera_lens, load_scene
 
 from ._forward import (
     PATH_IMAGE_BYTES,
@@ -173,9 +173,14 @@ class FitResult:
     dirt_sensitivity: np.ndarray | None = None
     """How much each dirt-map cell changes the flare, relative to the most sensitive cell (0: the
     flare never lights it, so it keeps its prior)."""
+    plates: int = 1
+    """Plates fitted together; with more than one, ``render``, ``residual``, ``light_gain`` and
+    ``light_gain_std`` are tuples, one entry per plate."""
 
     def as_dict(self) -> dict:
         def listed(x):
+            if isinstance(x, tuple):
+                return [listed(v) for v in x]
             return None if x is None else np.where(np.isfinite(x), x, -1.0).tolist()
 
         return {
@@ -184,7 +189,7 @@ class FitResult:
             "coating_tints": self.coating_tints.tolist(), "coating_tint_std": listed(self.tint_std),
             "observable_interfaces": None if self.tint_observable is None else [int(k) for k in np.flatnonzero(np.all(self.tint_observable, axis=1))],
             "coating_tint_observable": None if self.tint_observable is None else self.tint_observable.tolist(),
-            "light_gain": self.light_gain.tolist(), "light_gain_std": listed(self.light_gain_std),
+            "plates": self.plates, "light_gain": listed(self.light_gain), "light_gain_std": listed(self.light_gain_std),
             "dirt_shape": None if self.dirt is None else list(self.dirt.shape),
         }
 
@@ -220,7 +225,7 @@ def _choose_model(model: str, params, scene, block: int, paths, samples=None, me
 
 def fit(
     scene,
-    plate: Plate,
+    plate: Plate | Sequence[Plate],
     *,
     params: Sequence[str] = ("coatings", "dirt"),
     solver: str = DEFAULT_SOLVER,
@@ -237,15 +242,24 @@ def fit(
     rtol: float = 1e-6,
     atol: float = 1e-9,
     block: int | None = None,
-    fixed: FixedSamples | PathImages | GridFlareModel | None = None,
+    fixed=None,
     progress: Callable[[int, float], None] | None = None,
     grid_quality: str = GRID_QUALITY,
 ) -> FitResult:
     """Fit ``params`` (any of :data:`PARAMETERS`) of ``scene`` so its flare render matches ``plate``.
 
+    ``plate`` may also be a sequence of plates of one lens (frames of a shot, light positions of a
+    lens test), fitted together: the coatings and the dirt map are shared, each plate has its own
+    light gains, and ``scene`` is then one scene for all of them or a sequence of scenes, one per
+    plate (same lens, aperture and coatings; their lights and resolutions may differ). Seeing a
+    ghost cross the front lens at several places is what separates its tint from the dirt it
+    crosses. The result's ``render``, ``residual``, ``light_gain`` and ``light_gain_std`` are then
+    tuples with one entry per plate.
+
     The others keep the scene's values (its ``coating_tints``, its dirt map, gains 1); fitted
     tints start from the scene's, the dirt map from ``dirt_prior`` (a clean lens). The loss is
-    ``0.5 |w (render - plate)|^2 / |w plate|^2`` (``w``: the plate's weights, block-summed) plus
+    ``0.5 |w (render - plate)|^2 / |w plate|^2`` (``w``: the plate's weights, block-summed;
+    numerator and denominator summed over the plates) plus
     the priors ``0.5 dirt_prior_weight |dirt - dirt_prior|^2`` and ``0.5 tint_prior_weight
     |tints - 1|^2``: relative to the plate's light, so the prior weights do not depend on units.
 
@@ -261,7 +275,7 @@ def fit(
     path images when it can. ``block`` > 1 compares sums over ``block`` x ``block`` pixels (default
     :func:`default_block`): a plate's noise and the model's sub-pixel error average out in them,
     while a ghost spans many blocks. ``fixed``: a grid model, samples or path images made earlier
-    (tests, benchmarks). ``tint_prior_weight``: None takes the model's default
+    (tests, benchmarks; a sequence, one per plate, for several plates). ``tint_prior_weight``: None takes the model's default
     (:data:`TINT_PRIOR_WEIGHTS`).
     ``method``: how samples are traced (``"exact"``, ``"polynomial"``, ``"auto"``), as in
     :func:`jaxflare.render`; ``paths``: only these ghost paths (default: all).
@@ -275,32 +289,164 @@ def fit(
         raise ValueError(f"params must be a non-empty subset of {', '.join(PARAMETERS)}, got {list(params)!r}")
     params = tuple(p for p in PARAMETERS if p in params)
     started = time.perf_counter()
-    width, height = scene.camera.resolution
-    if plate.rgb.shape[:2] != (height, width):
-        raise ValueError(
-            f"plate {plate.source}: {plate.rgb.shape[1]} x {plate.rgb.shape[0]} pixels, but the scene renders "
-            f"{width} x {height} (camera.resolution): they must match"
-        )
+    scenes, plates, fixeds = _plates_and_scenes(scene, plate, fixed)
+    resolutions = [tuple(s.camera.resolution) for s in scenes]
+    for s, p in zip(scenes, plates):
+        width, height = s.camera.resolution
+        if p.rgb.shape[:2] != (height, width):
+            raise ValueError(
+                f"plate {p.source}: {p.rgb.shape[1]} x {p.rgb.shape[0]} pixels, but the scene renders "
+                f"{width} x {height} (camera.resolution): they must match"
+            )
     if block is None:
-        block = default_block(width, height)
-    if not (isinstance(block, int) and block >= 1 and width % block == 0 and height % block == 0):
-        raise ValueError(f"block must be a positive integer dividing the resolution {width} x {height}, got {block!r}")
+        block = min(default_block(w, h) for w, h in resolutions)
+    for width, height in resolutions:
+        if not (isinstance(block, int) and not isinstance(block, bool) and block >= 1 and width % block == 0 and height % block == 0):
+            raise ValueError(f"block must be a positive integer dividing the resolution {width} x {height}, got {block!r}")
     if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
         raise ValueError(f"max_steps must be an integer of at least 1, got {max_steps!r}")
     _solver(solver, rtol, atol)  # a bad solver name fails before any rendering
-    check_fittable(plate)  # and so does a plate no flare can match
-    if fixed is not None:
-        model = "grid" if isinstance(fixed, GridFlareModel) else "path-images" if isinstance(fixed, PathImages) else "samples"
-    model = _choose_model(model, params, scene, block, paths, samples, method)
+    for p in plates:
+        check_fittable(p)  # and so does a plate no flare can match
+    num_interfaces = _shared_lens_interfaces(scenes)
+    if fixeds[0] is not None:
+        model = "grid" if isinstance(fixeds[0], GridFlareModel) else "path-images" if isinstance(fixeds[0], PathImages) else "samples"
+    model = _choose_model(model, params, scenes[0], block, paths, samples, method)
+    if tint_prior_weight is None:
+        tint_prior_weight = TINT_PRIOR_WEIGHTS[model]
+    built = [
+        _plate_model(s, p, f, model, params, block, samples=samples, seed=seed, method=method, paths=paths, grid_quality=grid_quality)
+        for s, p, f in zip(scenes, plates, fixeds)
+    ]
+    with jax.enable_x64(True):
+        # the grid model's splat stays in float32 (as its render); the loss and solver are float64
+        forwards = [b.forward if isinstance(b.forward, GridFlareModel) else cast_floating(b.forward, jnp.float64) for b in built]
+        light_counts = [_num_lights(f) for f in forwards]
+        gain_offsets = np.concatenate([[0], np.cumsum(light_counts)]).astype(int)
+        grid_paths = [jnp.asarray(grid_interfaces(f)) if isinstance(f, GridFlareModel) else None for f in forwards]
+        scene_tints = np.clip(scenes[0].camera.interface_tints(num_interfaces), 1e-3, TINT_MAX - 1e-3)
+        start = initial_parameters(
+            num_interfaces, int(gain_offsets[-1]), tints=scene_tints,
+            dirt=np.full((dirt_resolution, dirt_resolution, 1), dirt_prior) if "dirt" in params else None,
+        )
+        free_mask = FlareParameters(tint_logits="coatings" in params, dirt_logits=None if start.dirt_logits is None else True, light_log_gain="lights" in params)
+        free, frozen = eqx.partition(start, free_mask, is_leaf=lambda x: x is None)
+        weights = [jnp.asarray(p.weight, jnp.float64)[..., None] for p in plates]
+
+        def pooled(k, image):  # weighted block sums of plate k
+            width, height = resolutions[k]
+            shape = (height // block, block, width // block, block, image.shape[-1])
+            return (image * weights[k]).reshape(shape).sum(axis=(1, 3))
+
+        targets = [pooled(k, jnp.asarray(np.where(p.weight[..., None] > 0, p.rgb, 0.0), jnp.float64)) for k, p in enumerate(plates)]
+        target_norm = float(jnp.sqrt(sum(jnp.sum(t**2) for t in targets)))
+        prior = jnp.asarray(dirt_prior, jnp.float64)
+
+        def model_image(k, tints, dirt, gain):
+            forward, gain = forwards[k], gain[gain_offsets[k] : gain_offsets[k + 1]] if "lights" in params else None
+            if isinstance(forward, GridFlareModel):
+                return pooled(k, forward.image(_path_tints(grid_paths[k], tints), dirt, gain).astype(jnp.float64))
+            if isinstance(forward, PathImages):
+                return path_image_model(forward, tints, gain)
+            return pooled(k, render_image(forward, tints, dirt, gain))
+
+        def data_residuals(tints, dirt, gain):
+            return jnp.concatenate([(model_image(k, tints, dirt, gain) - targets[k]).ravel() for k in range(len(plates))]) / target_norm
+
+        def residuals(free_params, _):
+            tints, dirt, gain = eqx.combine(free_params, frozen, is_leaf=lambda x: x is None).values()
+            parts = [data_residuals(tints, dirt, gain)]
+            if "dirt" in params:
+                parts.append(math.sqrt(dirt_prior_weight) * (dirt - prior).ravel())
+            if "coatings" in params:
+                parts.append(math.sqrt(tint_prior_weight) * (tints - 1.0).ravel())
+            return jnp.concatenate(parts)
+
+        best, history, steps, converged, status = _solve(residuals, free, solver, rtol, atol, max_steps, progress)
+        tints, dirt, gain = eqx.combine(best, frozen, is_leaf=lambda x: x is None).values()
+        tint_std, gain_std, tint_observable = _standard_errors(
+            data_residuals, tints, dirt, gain, params, tint_prior_weight=tint_prior_weight, residual_shape=[t.shape for t in targets],
+        )
+        sensitivity = None
+        if "dirt" in params:
+            grad = jax.grad(lambda d: sum(jnp.sum(model_image(k, tints, d, gain)) for k in range(len(plates))))(dirt)
+            sensitivity = np.abs(np.asarray(grad))
+            sensitivity = sensitivity / max(float(sensitivity.max()), 1e-300)
+        tints, gain = np.asarray(tints), np.asarray(gain)
+        dirt = None if dirt is None else np.asarray(dirt)
+        images = [
+            _final_image(b, f, scenes[k], tints, dirt, gain[gain_offsets[k] : gain_offsets[k + 1]] if "lights" in params else None)
+            for k, (b, f) in enumerate(zip(built, forwards))
+        ]
+    residual = [np.where(p.weight[..., None] > 0, image - p.rgb, 0.0) for p, image in zip(plates, images)]
+    gains = [gain[gain_offsets[k] : gain_offsets[k + 1]] for k in range(len(plates))]
+    gain_stds = None if gain_std is None else [gain_std[gain_offsets[k] : gain_offsets[k + 1]] for k in range(len(plates))]
+    one = len(plates) == 1
+    return FitResult(
+        coating_tints=tints, dirt=dirt, light_gain=gains[0] if one else tuple(gains), fitted=params, solver=solver, converged=converged,
+        status=status, steps=steps, loss_history=history, seconds=time.perf_counter() - started, render=images[0] if one else tuple(images),
+        residual=residual[0] if one else tuple(residual), model=model, samples=built[0].samples, block=block, tint_std=tint_std,
+        light_gain_std=None if gain_stds is None else gain_stds[0] if one else tuple(gain_stds), dirt_sensitivity=sensitivity,
+        tint_observable=tint_observable, plates=len(plates),
+    )
+
+
+def _plates_and_scenes(scene, plate, fixed):
+    """One plate or a sequence; one scene for all or one per plate; ``fixed`` likewise."""
+    plates = [plate] if isinstance(plate, Plate) else list(plate)
+    if not plates or not all(isinstance(p, Plate) for p in plates):
+        raise ValueError(f"plate must be a fitting.Plate or a non-empty sequence of them, got {type(plate).__name__}")
+    scenes = list(scene) if isinstance(scene, (list, tuple)) else [scene] * len(plates)
+    if len(scenes) != len(plates):
+        raise ValueError(f"{len(scenes)} scenes for {len(plates)} plates: give one scene for all plates or one per plate")
+    scenes = [s if isinstance(s, Scene) else load_scene(s) for s in scenes]
+    if fixed is None or isinstance(fixed, (GridFlareModel, PathImages, FixedSamples)):
+        if fixed is not None and len(plates) > 1:
+            raise ValueError(f"fixed: one forward model for {len(plates)} plates; give one per plate (a sequence)")
+        fixeds = [fixed] * len(plates)
+    else:
+        fixeds = list(fixed)
+        if len(fixeds) != len(plates) or len({type(f) for f in fixeds}) != 1:
+            raise ValueError(f"fixed: {len(fixeds)} forward models for {len(plates)} plates: give one of one kind per plate")
+    return scenes, plates, fixeds
+
+
+def _shared_lens_interfaces(scenes) -> int:
+    """The interfaces of the lens every plate's scene shares (coatings and dirt are shared)."""
+    lenses = [camera_lens(s.camera) for s in scenes]
+    first = lenses[0]
+    for k, lens in enumerate(lenses[1:], start=1):
+        same = lens.num_interfaces == first.num_interfaces and lens.curvature_per_mm.shape == first.curvature_per_mm.shape and np.allclose(
+            np.asarray(lens.curvature_per_mm), np.asarray(first.curvature_per_mm)
+        )
+        if not same:
+            raise ValueError(
+                f"the scene of plate {k} has another lens ({lens.num_interfaces} interfaces) than plate 0's ({first.num_interfaces}): "
+                "plates fitted together share coatings and dirt, so they must show one lens"
+            )
+    return int(first.num_interfaces)
+
+
+@dataclasses.dataclass
+class _BuiltModel:
+    forward: object
+    """What the fit evaluates: a GridFlareModel (dirt fitted), PathImages or FixedSamples."""
+    grid: GridFlareModel | None
+    samples: int
+
+
+def _plate_model(scene, plate: Plate, fixed, model: str, params, block: int, *, samples, seed, method, paths, grid_quality) -> _BuiltModel:
+    """The forward model of one plate: built (or checked, when ``fixed``) for its resolution, weights and block."""
+    width, height = scene.camera.resolution
     grid_flare = None
     if model == "grid":
         if fixed is not None and fixed.resolution != (width, height):
             raise ValueError(f"the grid model given was made at {fixed.resolution[0]} x {fixed.resolution[1]}, not {width} x {height}")
         grid_flare = fixed if fixed is not None else grid_flare_model(scene, grid_quality, paths=paths, **(FINE_GRID if width * height <= FINE_GRID_PIXELS else {}))
-        samples = grid_flare.subsamples
         # with the dirt map fixed the flare is a tinted sum of per-path images; a dirt fit re-splats
-        fixed = grid_flare if "dirt" in params else grid_path_images(grid_flare, plate.weight, block, per_light_colour="lights" in params)
-    elif fixed is not None:
+        forward = grid_flare if "dirt" in params else grid_path_images(grid_flare, plate.weight, block, per_light_colour="lights" in params)
+        return _BuiltModel(forward, grid_flare, grid_flare.subsamples)
+    if fixed is not None:
         samples = fixed.samples if isinstance(fixed, PathImages) else int(fixed.records.path.shape[0])
     elif samples is None:
         samples = DEFAULT_SAMPLES[model]
@@ -316,89 +462,30 @@ def fit(
         fixed = reweighted(fixed, plate.weight, block)
     elif isinstance(fixed, PathImages) and fixed.block != block:
         raise ValueError(f"the path images given were made for block {fixed.block} (without full-resolution images), not block {block}")
-    if tint_prior_weight is None:
-        tint_prior_weight = TINT_PRIOR_WEIGHTS[model]
-    with jax.enable_x64(True):
-        # the grid model's splat stays in float32 (as its render); the loss and solver are float64
-        forward = fixed if isinstance(fixed, GridFlareModel) else cast_floating(fixed, jnp.float64)
-        if isinstance(forward, GridFlareModel):
-            num_interfaces, num_lights = int(scene_lens_interfaces(scene)), forward.num_lights
-            grid_paths = jnp.asarray(grid_interfaces(forward))
-        else:
-            num_interfaces = forward.num_interfaces
-            num_lights = forward.num_lights if isinstance(forward, PathImages) else int(forward.setup.lights.kind.shape[0])
-        scene_tints = np.clip(scene.camera.interface_tints(num_interfaces), 1e-3, TINT_MAX - 1e-3)
-        start = initial_parameters(
-            num_interfaces, num_lights, tints=scene_tints, dirt=np.full((dirt_resolution, dirt_resolution, 1), dirt_prior) if "dirt" in params else None,
-        )
-        free_mask = FlareParameters(tint_logits="coatings" in params, dirt_logits=None if start.dirt_logits is None else True, light_log_gain="lights" in params)
-        free, frozen = eqx.partition(start, free_mask, is_leaf=lambda x: x is None)
-        weight = jnp.asarray(plate.weight, jnp.float64)[..., None]
+    return _BuiltModel(fixed, None, samples)
 
-        def pooled(image):  # weighted block sums
-            shape = (height // block, block, width // block, block, image.shape[-1])
-            return (image * weight).reshape(shape).sum(axis=(1, 3))
 
-        target = pooled(jnp.asarray(np.where(plate.weight[..., None] > 0, plate.rgb, 0.0), jnp.float64))
-        target_norm = float(jnp.sqrt(jnp.sum(target**2)))
-        if not target_norm > 0:
-            raise ValueError(f"plate {plate.source}: no light where its weight is non-zero (the plate is black under the mask): nothing to fit")
-        prior = jnp.asarray(dirt_prior, jnp.float64)
+def _num_lights(forward) -> int:
+    if isinstance(forward, (GridFlareModel, PathImages)):
+        return forward.num_lights
+    return int(forward.setup.lights.kind.shape[0])
 
-        def model_image(tints, dirt, gain):
-            if isinstance(forward, GridFlareModel):
-                image = forward.image(_path_tints(grid_paths, tints), dirt, gain if "lights" in params else None)
-                return pooled(image.astype(jnp.float64))
-            if isinstance(forward, PathImages):
-                return path_image_model(forward, tints, gain if "lights" in params else None)
-            return pooled(render_image(forward, tints, dirt, gain))
 
-        def data_residuals(tints, dirt, gain):
-            return (model_image(tints, dirt, gain) - target).ravel() / target_norm
+_grid_image = eqx.filter_jit(lambda flare, path_tint, dirt, gain: flare.image(path_tint, dirt, gain))
 
-        def residuals(free_params, _):
-            tints, dirt, gain = eqx.combine(free_params, frozen, is_leaf=lambda x: x is None).values()
-            parts = [data_residuals(tints, dirt, gain)]
-            if "dirt" in params:
-                parts.append(math.sqrt(dirt_prior_weight) * (dirt - prior).ravel())
-            if "coatings" in params:
-                parts.append(math.sqrt(tint_prior_weight) * (tints - 1.0).ravel())
-            return jnp.concatenate(parts)
 
-        best, history, steps, converged, status = _solve(residuals, free, solver, rtol, atol, max_steps, progress)
-        tints, dirt, gain = eqx.combine(best, frozen, is_leaf=lambda x: x is None).values()
-        tint_std, gain_std, tint_observable = _standard_errors(
-            data_residuals, tints, dirt, gain, params, tint_prior_weight=tint_prior_weight, residual_shape=target.shape,
-        )
-        sensitivity = None
-        if "dirt" in params:
-            grad = jax.grad(lambda d: jnp.sum(model_image(tints, d, gain)))(dirt)
-            sensitivity = np.abs(np.asarray(grad))
-            sensitivity = sensitivity / max(float(sensitivity.max()), 1e-300)
-        tints, gain = np.asarray(tints), np.asarray(gain)
-        dirt = None if dirt is None else np.asarray(dirt)
-        if grid_flare is not None and not (isinstance(forward, PathImages) and forward.full_images is not None):
-            image = np.asarray(
-                eqx.filter_jit(lambda f, t, d, g: f.image(t, d, g))(
-                    grid_flare, _path_tints(jnp.asarray(grid_interfaces(grid_flare)), jnp.asarray(tints)), None if dirt is None else jnp.asarray(dirt),
-                    jnp.asarray(gain) if "lights" in params else None,
-                ),
-                np.float64,
-            )
-        elif isinstance(forward, PathImages) and forward.full_images is not None:
-            image = np.asarray(path_image_model(forward, jnp.asarray(tints), jnp.asarray(gain) if "lights" in params else None, full=True))
-        elif isinstance(forward, PathImages):
-            image = flare_render(
-                scene, tints, gain, samples=fixed.samples, seed=fixed.seed, method=fixed.method, quality=fixed.quality, paths=fixed.paths,
-            )
-        else:
-            image = np.asarray(render_image(forward, jnp.asarray(tints), None if dirt is None else jnp.asarray(dirt), jnp.asarray(gain)))
-    residual = np.where(plate.weight[..., None] > 0, image - plate.rgb, 0.0)
-    return FitResult(
-        coating_tints=tints, dirt=dirt, light_gain=gain, fitted=params, solver=solver, converged=converged, status=status, steps=steps,
-        loss_history=history, seconds=time.perf_counter() - started, render=image, residual=residual, model=model, samples=samples,
-        block=block, tint_std=tint_std, light_gain_std=gain_std, dirt_sensitivity=sensitivity, tint_observable=tint_observable,
-    )
+def _final_image(built: _BuiltModel, forward, scene, tints, dirt, gain) -> np.ndarray:
+    """The flare with the fitted parameters at the plate's full resolution."""
+    gain = None if gain is None else jnp.asarray(gain)
+    if isinstance(forward, PathImages) and forward.full_images is not None:
+        return np.asarray(path_image_model(forward, jnp.asarray(tints), gain, full=True))
+    if built.grid is not None:
+        path_tint = _path_tints(jnp.asarray(grid_interfaces(built.grid)), jnp.asarray(tints))
+        return np.asarray(_grid_image(built.grid, path_tint, None if dirt is None else jnp.asarray(dirt), gain), np.float64)
+    if isinstance(forward, PathImages):
+        fixed = built.forward
+        return flare_render(scene, tints, gain, samples=fixed.samples, seed=fixed.seed, method=fixed.method, quality=fixed.quality, paths=fixed.paths)
+    return np.asarray(render_image(forward, jnp.asarray(tints), None if dirt is None else jnp.asarray(dirt), jnp.ones((_num_lights(forward), 3)) if gain is None else gain))
 
 
 def _solve(residuals, free, solver: str, rtol: float, atol: float, max_steps: int, progress):
@@ -494,17 +581,27 @@ def _inverse_diagonal(normal: np.ndarray) -> np.ndarray:
 
 def residual_correlation(residuals: np.ndarray, shape) -> float:
     """``kappa`` of :func:`_standard_errors`: the variance of 2 x 2 sums of the residual image
-    (``shape``: (H, W, C)) over 4 times the residuals' variance, at least 1 (1 when ``shape`` is
-    None or smaller than 2 x 2)."""
-    if shape is None or shape[0] < 2 or shape[1] < 2:
+    (``shape``: (H, W, C), or a list of shapes for the plates' residuals one after the other) over
+    4 times the residuals' variance, at least 1 (1 when ``shape`` is None or every image is
+    smaller than 2 x 2)."""
+    if shape is None:
         return 1.0
-    image = np.asarray(residuals, np.float64).reshape(shape)
-    h, w = shape[0] // 2 * 2, shape[1] // 2 * 2
-    single = float(np.mean(image[:h, :w] ** 2))
+    shapes = [tuple(shape)] if isinstance(shape, tuple) and all(isinstance(v, int) for v in shape) else [tuple(v) for v in shape]
+    residuals = np.asarray(residuals, np.float64).ravel()
+    single = paired = 0.0
+    offset = 0
+    for one in shapes:
+        size = int(np.prod(one))
+        image = residuals[offset : offset + size].reshape(one)
+        offset += size
+        if one[0] < 2 or one[1] < 2:
+            continue
+        h, w = one[0] // 2 * 2, one[1] // 2 * 2
+        single += float(np.sum(image[:h, :w] ** 2))
+        paired += float(np.sum(image[:h, :w].reshape(h // 2, 2, w // 2, 2, -1).sum(axis=(1, 3)) ** 2))
     if not single > 0:
         return 1.0
-    sums = image[:h, :w].reshape(h // 2, 2, w // 2, 2, -1).sum(axis=(1, 3))
-    return max(1.0, float(np.mean(sums**2)) / (4.0 * single))
+    return max(1.0, paired / single)  # sum of squared 2 x 2 sums over sum of squares: 1 when independent
 
 
 def _with(tints_gain, dirt):
@@ -514,26 +611,34 @@ def _with(tints_gain, dirt):
 
 def save_fit(result: FitResult, path: str | os.PathLike) -> str:
     """Write the fitted parameters as JSON (``path``), the dirt map as ``<stem>_dirt.exr`` beside it,
-    and the re-rendered flare and the residual as ``<stem>_render.exr``; all atomically."""
+    and the re-rendered flare and the residual as ``<stem>_render.exr`` (``<stem>_render_<k>.exr``
+    for plate k of a fit of several plates); all atomically."""
     path = os.fspath(path)
     stem = os.path.splitext(path)[0]
     data = result.as_dict()
-    render_file, dirt_file = stem + "_render.exr", stem + "_dirt.exr"
-    targets = [path, render_file] + ([dirt_file] if result.dirt is not None else [])
-    # the three files are committed together: a reader never sees a JSON next to another fit's renders
+    renders = [result.render] if result.plates == 1 else list(result.render)
+    residuals = [result.residual] if result.plates == 1 else list(result.residual)
+    render_files = [stem + "_render.exr"] if result.plates == 1 else [f"{stem}_render_{k}.exr" for k in range(result.plates)]
+    dirt_file = stem + "_dirt.exr"
+    targets = [path, *render_files] + ([dirt_file] if result.dirt is not None else [])
+    # the files are committed together: a reader never sees a JSON next to another fit's renders
     with atomic_output_group(targets, stale=() if result.dirt is not None else (dirt_file,)) as temporaries:
         if result.dirt is not None:
-            write_exr(temporaries[2], {"": np.ascontiguousarray(result.dirt.astype(np.float32))}, pixel_type="float")
+            write_exr(temporaries[-1], {"": np.ascontiguousarray(result.dirt.astype(np.float32))}, pixel_type="float")
             data["dirt_map"] = os.path.basename(dirt_file)
-        write_exr(temporaries[1], {"": result.render.astype(np.float32), "residual": result.residual.astype(np.float32)}, pixel_type="float")
+        for temporary, render, residual in zip(temporaries[1 : 1 + len(render_files)], renders, residuals):
+            write_exr(temporary, {"": render.astype(np.float32), "residual": residual.astype(np.float32)}, pixel_type="float")
+        data["renders"] = [os.path.basename(f) for f in render_files]
         with open(temporaries[0], "w", encoding="utf-8") as handle:
             handle.write(json.dumps(data, indent=2))
     return path
 
 
-def apply_fit(scene, fitted: str | os.PathLike | dict):
+def apply_fit(scene, fitted: str | os.PathLike | dict, *, plate: int | None = None):
     """The scene with fitted parameters (a JSON file from :func:`save_fit` or its dict) applied:
-    coating tints, the dirt map, and light gains (multiplying each light's RGB colour)."""
+    coating tints, the dirt map, and light gains (multiplying each light's RGB colour). A fit of
+    several plates has light gains per plate: ``plate`` says whose (needed when lights were
+    fitted; the coatings and dirt are shared)."""
     if not isinstance(fitted, dict):
         folder = os.path.dirname(os.path.abspath(fitted))
         with open(fitted) as handle:
@@ -548,10 +653,16 @@ def apply_fit(scene, fitted: str | os.PathLike | dict):
         changes["dirt_map"] = os.path.join(folder, fitted["dirt_map"])
     camera = dataclasses.replace(camera, **changes)
     lights = scene.lights
+    light_gain = fitted.get("light_gain")
+    plates = int(fitted.get("plates", 1))
+    if "lights" in fitted["fitted"] and plates > 1:
+        if plate is None or isinstance(plate, bool) or not isinstance(plate, int) or not 0 <= plate < plates:
+            raise ValueError(f"the fit has light gains for {plates} plates: pass plate= an index 0 .. {plates - 1} to choose whose, got {plate!r}")
+        light_gain = light_gain[plate]
     if "lights" in fitted["fitted"]:
         flare_lights = [k for k, light in enumerate(lights) if light.flare]
         lights = list(lights)
-        for gain, k in zip(fitted["light_gain"], flare_lights):
+        for gain, k in zip(light_gain, flare_lights):
             light: Light = lights[k]
             if light.rgb is None and (light.spectrum is not None or light.temperature_k is not None):
                 scale = float(np.mean(gain))

@@ -5,7 +5,7 @@
     jaxflare lens plot NAME -o OUT.png      cross-section with primary rays and a ghost path
     jaxflare lens convert IN OUT            any lens file (also .lens, .json, .xml, .dat) to TOML or Zemax .zmx
     jaxflare render SCENE.toml -o OUT.exr   render a scene's flares to a multi-layer EXR (--png: preview)
-    jaxflare fit PLATE --scene S -o F.json  fit coating colours / dirt / light gains to a plate
+    jaxflare fit PLATE [PLATE ...] --scene S -o F.json  fit coating colours / dirt / light gains to plates
     jaxflare demo [--out DIR]               the demo: lens table, cross-section, demo scene render
 
 Errors are one line on stderr, ``jaxflare: error: ...``, and exit with status 2 (bad input or
@@ -227,13 +227,13 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--estimator", choices=["monte-carlo", "grid"], default=None, help="monte-carlo or the deterministic grid (default: the scene's)")
 
     fit = commands.add_parser("fit", help="fit coating colours, dirt and light gains to a plate (package fitting)")
-    fit.add_argument("plate", help="plate image: EXR (any layer), 16-bit PNG or TIFF, linear")
-    fit.add_argument("--scene", required=True, help="scene TOML that matches the plate")
+    fit.add_argument("plate", nargs="+", help="plate image(s): EXR (any layer), 16-bit PNG or TIFF, linear; several plates of one lens are fitted together (shared coatings and dirt, light gains per plate)")
+    fit.add_argument("--scene", required=True, action="append", help="scene TOML that matches the plate: once for all plates, or once per plate in their order")
     fit.add_argument("-o", "--output", required=True, help="fitted parameters .json (dirt map and renders are written beside it)")
     fit.add_argument("--params", default="coatings,dirt", help="comma-separated subset of coatings,dirt,lights (default coatings,dirt)")
     fit.add_argument("--solver", default=None, help="levenberg-marquardt (default), gauss-newton or bfgs")
     fit.add_argument("--layer", default=None, help="EXR layer of the plate (default: the default layer)")
-    fit.add_argument("--mask", default=None, help="mask image: 1 where the plate shows flare to fit, 0 to ignore")
+    fit.add_argument("--mask", default=None, action="append", help="mask image: 1 where the plate shows flare to fit, 0 to ignore (once for all plates, or once per plate)")
     fit.add_argument("--samples", type=_int_range(1, MAX_SAMPLES, "--samples"), default=None, help="Monte Carlo samples of the fit's model (default: the grid model, which has none; given, the model is Monte Carlo: 2^22 path images or 2^19 samples by default)")
     fit.add_argument("--seed", type=_int_range(0, MAX_SEED, "--seed"), default=0)
     fit.add_argument("--model", default="auto", help="auto (default: grid), grid (deterministic ray grid), path-images (Monte Carlo, coatings and lights only) or samples (Monte Carlo)")
@@ -352,16 +352,26 @@ def _fit(args) -> int:
 
     from .scenes import load_scene
 
-    scene = load_scene(args.scene)
+    if len(args.scene) not in (1, len(args.plate)):
+        raise ValueError(f"--scene given {len(args.scene)} times for {len(args.plate)} plates: give it once, or once per plate")
+    masks = args.mask or [None]
+    if len(masks) not in (1, len(args.plate)):
+        raise ValueError(f"--mask given {len(masks)} times for {len(args.plate)} plates: give it once, or once per plate")
+    scenes = [load_scene(path) for path in args.scene]
+    scenes = scenes * len(args.plate) if len(scenes) == 1 else scenes
+    masks = masks * len(args.plate) if len(masks) == 1 else masks
     params = tuple(p.strip() for p in args.params.split(",") if p.strip())
     _check_output(args.output, ".json")
-    plate = fitting.load_plate(args.plate, layer=args.layer, mask=args.mask, expected_size=tuple(scene.camera.resolution))
+    plates = [
+        fitting.load_plate(path, layer=args.layer, mask=mask, expected_size=tuple(scene.camera.resolution))
+        for path, mask, scene in zip(args.plate, masks, scenes)
+    ]
 
     def report(step, loss):
         print(f"  step {step:>4}  loss {loss:.6g}", file=sys.stderr)
 
     result = fitting.fit(
-        scene, plate, params=params, solver=args.solver or fitting.DEFAULT_SOLVER, model=args.model, method=args.method, samples=args.samples,
+        scenes[0] if len(plates) == 1 else scenes, plates[0] if len(plates) == 1 else plates, params=params, solver=args.solver or fitting.DEFAULT_SOLVER, model=args.model, method=args.method, samples=args.samples,
         seed=args.seed, block=args.block, dirt_resolution=args.dirt_resolution, max_steps=args.max_steps, progress=report,
     )
     path = fitting.save_fit(result, args.output)
