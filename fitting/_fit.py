@@ -56,11 +56,6 @@ from ._grid_model import grid_interfaces, grid_path_images
 from ._plate import Plate, check_fittable
 
 
-def scene_lens_interfaces(scene) -> int:
-    """The number of interfaces of the scene's lens."""
-    return camera_lens(scene.camera).num_interfaces
-
-
 PARAMETERS = ("coatings", "dirt", "lights")
 """What a fit can change: per-interface coating colours, the front-lens dirt map, light gains."""
 SOLVERS = ("levenberg-marquardt", "gauss-newton", "bfgs")
@@ -242,7 +237,7 @@ def fit(
     rtol: float = 1e-6,
     atol: float = 1e-9,
     block: int | None = None,
-    fixed=None,
+    fixed: FixedSamples | PathImages | GridFlareModel | Sequence | None = None,
     progress: Callable[[int, float], None] | None = None,
     grid_quality: str = GRID_QUALITY,
 ) -> FitResult:
@@ -551,16 +546,17 @@ def _standard_errors(data_residuals, tints, dirt, gain, params, *, tint_prior_we
     r = residual_at(flat)
     basis = jnp.eye(flat.size, dtype=flat.dtype)
     columns = jax.lax.map(lambda e: jax.jvp(residual_at, (flat,), (e,))[1], basis)  # (p, n): memory p x n only
-    normal = np.asarray(columns @ columns.T)
+    data_normal = np.asarray(columns @ columns.T)  # the plate's information alone
+    normal = data_normal
     if "coatings" in names and tint_prior_weight > 0:
         prior = np.zeros(flat.size)
         prior[: tints.size] = tint_prior_weight
-        normal = normal + np.diag(prior)
+        normal = data_normal + np.diag(prior)
     dof = max(int(r.size) - flat.size, 1)
     scatter = float(jnp.sum(r**2)) / dof
     scatter *= residual_correlation(np.asarray(r), residual_shape)
     std = np.sqrt(_inverse_diagonal(normal) * scatter)
-    data_std = np.sqrt(scatter * _inverse_diagonal(np.asarray(columns @ columns.T)))  # the plate's information alone
+    data_std = np.sqrt(scatter * _inverse_diagonal(data_normal))
     parts = dict(zip(names, np.split(std, np.cumsum(sizes)[:-1])))
     data_parts = dict(zip(names, np.split(data_std, np.cumsum(sizes)[:-1])))
     tint_std = parts["coatings"].reshape(tints.shape) if "coatings" in parts else None

@@ -371,7 +371,7 @@ def _fit(args) -> int:
         print(f"  step {step:>4}  loss {loss:.6g}", file=sys.stderr)
 
     result = fitting.fit(
-        scenes[0] if len(plates) == 1 else scenes, plates[0] if len(plates) == 1 else plates, params=params, solver=args.solver or fitting.DEFAULT_SOLVER, model=args.model, method=args.method, samples=args.samples,
+        scenes, plates, params=params, solver=args.solver or fitting.DEFAULT_SOLVER, model=args.model, method=args.method, samples=args.samples,
         seed=args.seed, block=args.block, dirt_resolution=args.dirt_resolution, max_steps=args.max_steps, progress=report,
     )
     path = fitting.save_fit(result, args.output)
