@@ -2,19 +2,21 @@
 
 The grid render is deterministic: its model of the flare has no Monte Carlo noise, so a
 least-squares fit through it is unbiased and its loss is smooth. With the dirt map fixed the fit
-needs only each path's image (:func:`grid_path_images`, as :class:`~._forward.PathImages`); a fit
-of the dirt map re-splats the grid's fixed sub-samples for every dirt map the solver tries.
+needs only each path's image (:func:`grid_path_images`, as :class:`~._forward.PathImages`), and a
+thin-film fit each path's image per spectral knot (:func:`grid_film_images`); a fit of the dirt
+map re-splats the grid's fixed sub-samples for every dirt map the solver tries.
 """
 
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflare.rendering import GridFlareModel
+from jaxflare.rendering import GridFlareModel, knot_hats
 
-from ._forward import FULL_IMAGE_BYTES, PathImages, _weighted_blocks
+from ._forward import FULL_IMAGE_BYTES, PathImages, _path_tints, _weighted_blocks
 
 
 def grid_interfaces(flare: GridFlareModel) -> np.ndarray:
@@ -41,3 +43,50 @@ def grid_path_images(flare: GridFlareModel, pixel_weight=None, block: int = 1, *
         block=block, resolution=(width, height), num_interfaces=int(flare.setup.lens.num_interfaces), num_lights=flare.num_lights,
         samples=flare.subsamples, seed=0, method="grid", quality=flare.quality, paths=flare.paths,
     )
+
+
+class FilmImages(eqx.Module):
+    """Each flare path's grid image per spectral knot (:meth:`GridFlareModel.path_knot_images`),
+    weighted and block-summed: the forward model of a thin-film fit with the dirt map fixed. The
+    flare is linear in the paths' Fresnel factors, so it is a weighted sum of these images."""
+
+    images: jax.Array
+    """(P, B, K, h, w, 3): path, knot, light gain basis (as :class:`~._forward.PathImages`)."""
+    knots: tuple[int, ...] = eqx.field(static=True)
+    """The knots' indices into the spectral grid (B,)."""
+    path_interfaces: jax.Array
+    num_lights: int = eqx.field(static=True)
+
+
+def film_images_bytes(flare: GridFlareModel, block: int, *, per_light_colour: bool) -> int:
+    """Size (float64) of :func:`grid_film_images`' stack."""
+    width, height = flare.resolution
+    knots, _ = knot_hats(np.asarray(flare.setup.spectral.wavelength_nm))
+    bases = 3 * flare.num_lights if per_light_colour else 1
+    return 8 * flare.num_paths * knots.size * bases * (width // block) * (height // block) * 3
+
+
+def grid_film_images(flare: GridFlareModel, pixel_weight=None, block: int = 1, *, per_light_colour: bool = False) -> FilmImages:
+    """The knot images of ``flare`` weighted by ``pixel_weight`` and summed over ``block`` x ``block``."""
+    width, height = flare.resolution
+    if height % block or width % block:
+        raise ValueError(f"block must divide the resolution {width} x {height}, got {block}")
+    knots, _ = knot_hats(np.asarray(flare.setup.spectral.wavelength_nm))
+    weight = np.ones((height, width)) if pixel_weight is None else np.asarray(pixel_weight, np.float64)
+    full, found = flare.path_knot_images(per_light_colour=per_light_colour)
+    full = np.asarray(full, np.float32)  # (P, B, K, H, W, 3)
+    num_paths, num_knots, num_bases = full.shape[:3]
+    stacks = _weighted_blocks(full.reshape(num_paths * num_knots, num_bases, height, width, 3), weight, block)
+    return FilmImages(
+        images=jnp.asarray(stacks.reshape(num_paths, num_knots, num_bases, height // block, width // block, 3)), knots=tuple(int(k) for k in found),
+        path_interfaces=jnp.asarray(grid_interfaces(flare)), num_lights=flare.num_lights,
+    )
+
+
+def film_image_model(images: FilmImages, path_fresnel, interface_tints, light_gain=None):
+    """The weighted, block-summed flare for paths' Fresnel factors ``path_fresnel`` (P, L on the
+    spectral grid), interface tints and light gains."""
+    tints = _path_tints(images.path_interfaces, interface_tints)  # (P, 3)
+    weights = jnp.asarray(path_fresnel)[:, np.asarray(images.knots)].astype(images.images.dtype)  # (P, B)
+    gains = jnp.ones((1,), images.images.dtype) if images.images.shape[2] == 1 else jnp.asarray(light_gain).reshape(-1).astype(images.images.dtype)
+    return jnp.einsum("pc,pb,k,pbkhwc->hwc", tints, weights, gains, images.images)

@@ -230,7 +230,7 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("plate", nargs="+", help="plate image(s): EXR (any layer), 16-bit PNG or TIFF, linear; several plates of one lens are fitted together (shared coatings and dirt, light gains per plate)")
     fit.add_argument("--scene", required=True, action="append", help="scene TOML that matches the plate: once for all plates, or once per plate in their order")
     fit.add_argument("-o", "--output", required=True, help="fitted parameters .json (dirt map and renders are written beside it)")
-    fit.add_argument("--params", default="coatings,dirt", help="comma-separated subset of coatings,dirt,lights (default coatings,dirt)")
+    fit.add_argument("--params", default="coatings,dirt", help="comma-separated subset of coatings,thin-film,dirt,lights (default coatings,dirt; thin-film fits the coating layers instead of free tints)")
     fit.add_argument("--solver", default=None, help="levenberg-marquardt (default), gauss-newton or bfgs")
     fit.add_argument("--layer", default=None, help="EXR layer of the plate (default: the default layer)")
     fit.add_argument("--mask", default=None, action="append", help="mask image: 1 where the plate shows flare to fit, 0 to ignore (once for all plates, or once per plate)")
@@ -382,6 +382,12 @@ def _fit(args) -> int:
     if result.tint_std is not None:
         observable = result.as_dict()["observable_interfaces"]
         print(f"interfaces the plate determines (tint standard error without the prior < {fitting.OBSERVABLE_STD}): {observable or 'none'}")
+    for layer in result.coating_layers or ():
+        std = layer["thickness_std_nm"]
+        print(
+            f"  surface {layer['surface']:>3} layer {layer['layer']}: {layer['thickness_nm']:7.1f} nm (start {layer['thickness_start_nm']:.1f}"
+            f"{'' if std is None else f', std {std:.2f}'}), n {layer['index']:.4f}{'' if layer['observable'] else '  (not determined by the plate)'}"
+        )
     return 0 if result.converged else 1
 
 

@@ -353,12 +353,9 @@ def record_table(rows: jax.Array, records: dict) -> tuple[RecordTable, int, np.n
     return table, total, first
 
 
-def job_table(setup, jobs: list[GridJob], path_fresnel: jax.Array, band: tuple[float, float]) -> JobTable:
-    """The device job table: each job's sub-node colours are the light's RGB x the path's on-axis
-    coated Fresnel factor (Schlick model; the exact model's throughput is per vertex) averaged over
-    the sub-node's stratum of :data:`BAND_POINTS` wavelengths, for every sub-node choice."""
-    size = _bucket(max(len(jobs), MIN_JOBS))
-    jobs_padded = jobs + [jobs[0]] * (size - len(jobs))
+def band_averaging(band: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """The :data:`BAND_POINTS` wavelengths (nm) spanning ``band`` and the (COLOUR_ROW, BAND_POINTS)
+    matrix averaging them over each sub-node's stratum, for every sub-node choice."""
     low, high = band
     fine = low + (np.arange(BAND_POINTS) + 0.5) * (high - low) / BAND_POINTS
     averaging = np.zeros((COLOUR_ROW, BAND_POINTS))
@@ -366,6 +363,16 @@ def job_table(setup, jobs: list[GridJob], path_fresnel: jax.Array, band: tuple[f
         per = BAND_POINTS // choice
         for m in range(choice):
             averaging[SUB_NODE_OFFSETS[choice] + m, m * per : (m + 1) * per] = 1.0 / per
+    return fine, averaging
+
+
+def job_table(setup, jobs: list[GridJob], path_fresnel: jax.Array, band: tuple[float, float]) -> JobTable:
+    """The device job table: each job's sub-node colours are the light's RGB x the path's on-axis
+    coated Fresnel factor (Schlick model; the exact model's throughput is per vertex) averaged over
+    the sub-node's stratum of :data:`BAND_POINTS` wavelengths, for every sub-node choice."""
+    size = _bucket(max(len(jobs), MIN_JOBS))
+    jobs_padded = jobs + [jobs[0]] * (size - len(jobs))
+    fine, averaging = band_averaging(band)
     light = np.asarray([job.light for job in jobs_padded], np.int32)
     path = np.asarray([job.path for job in jobs_padded], np.int32)
     colour = _job_colours(setup, path_fresnel, jnp.asarray(light), jnp.asarray(path), jnp.asarray(fine, jnp.float32), jnp.asarray(averaging, jnp.float32))
@@ -387,8 +394,11 @@ def job_table(setup, jobs: list[GridJob], path_fresnel: jax.Array, band: tuple[f
     )
 
 
-@eqx.filter_jit
-def _job_colours(setup, path_fresnel, light, path, fine, averaging):
+def job_colours(setup, path_fresnel, light, path, fine, averaging):
+    """Each job's sub-node colours (J, COLOUR_ROW, 3): its light's RGB at the ``fine`` band
+    wavelengths, times its path's Fresnel factor ``path_fresnel`` (P, L on the spectral grid,
+    linearly interpolated) under the Schlick model, averaged by ``averaging``. Differentiable in
+    ``path_fresnel`` and the lights (a fit of thin-film coatings goes through it)."""
     count, points = light.shape[0], fine.shape[0]
     lights = jnp.repeat(light, points)
     wavelengths = jnp.tile(fine, count)
@@ -401,6 +411,9 @@ def _job_colours(setup, path_fresnel, light, path, fine, averaging):
         fresnel = path_fresnel[path][:, below] * (1 - t) + path_fresnel[path][:, below + 1] * t  # (J, points)
         rgb = rgb * fresnel[:, :, None]
     return jnp.einsum("mp,jpc->jmc", averaging, rgb)
+
+
+_job_colours = eqx.filter_jit(job_colours)
 
 
 @dataclasses.dataclass

@@ -15,6 +15,16 @@ fit of coatings and lights needs only their weighted sums.
 Light gains scale a light's RGB colour per channel (a spectral light's brightness by their mean),
 as :func:`scaled_lights` does for the Monte Carlo records: the job colours are linear in that gain,
 so the model keeps one colour table per light and input channel and sums them.
+
+Thin-film coatings enter through each path's on-axis coated Fresnel factor (P, L), which scales
+its jobs' colours per wavelength under the Schlick model: :meth:`GridFlareModel.path_fresnel`
+computes it for other coating stacks (the characteristic-matrix model), and ``image(...,
+path_fresnel=)`` recolours the jobs with it, so a fit of layer thicknesses and indices is exact
+to the grid estimator (not an RGB approximation of the spectrum). The flare is linear in the
+Fresnel factors, so :meth:`GridFlareModel.path_knot_images` splats once per spectral knot (a hat
+function of wavelength) and a fit takes weighted sums of those images instead of re-splatting;
+coating spectra are smooth, so knots :data:`KNOT_STEP_NM` apart suffice (measured in
+tests/fitting/test_thin_film.py against the re-splat).
 """
 
 from __future__ import annotations
@@ -26,8 +36,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from ..optics import EventTable, on_axis_fresnel
 from ..scenes import Scene, load_scene
-from ._grid import job_table
+from ._grid import band_averaging, job_colours, job_table
 from ._grid_plan import GridPlan, plan_grid, prepare_grid
 from ._grid_splat import COMPOSE_LEVELS, JobTable, RecordTable, empty_grid_accumulators, splat_subsamples
 from ._lights import LightArrays
@@ -35,6 +46,23 @@ from ._quality import radiance_scale
 from ._step import RenderSetup
 
 __all__ = ["GridFlareModel", "grid_flare_model", "scaled_lights"]
+
+KNOT_STEP_NM = 10.0
+"""Spacing of the spectral knots of :meth:`GridFlareModel.path_knot_images`. Measured on a 64 x 48
+Biotar with MgF2 coatings 0.85-1.2 times their design thickness: the knot sum differs from the
+re-splat by 0.09-0.29 % RMSE at 10 nm, 0.6 % at 12.5 nm, 1.4 % at 20 nm, 2.3 % at 25 nm."""
+
+
+def knot_hats(wavelength_nm: np.ndarray, step_nm: float = KNOT_STEP_NM) -> tuple[np.ndarray, np.ndarray]:
+    """Knot indices into the spectral grid ``wavelength_nm`` (about ``step_nm`` apart, both ends
+    included) and their hat functions on the grid (B, L): piecewise linear, a partition of unity,
+    so a spectrum sampled at the knots is interpolated linearly between them."""
+    count = wavelength_nm.shape[0]
+    span = float(wavelength_nm[-1] - wavelength_nm[0])
+    num = max(2, int(round(span / step_nm)) + 1)
+    knots = np.unique(np.round(np.linspace(0, count - 1, num)).astype(int))
+    hats = np.stack([np.interp(np.arange(count), knots, np.eye(knots.size)[b]) for b in range(knots.size)])
+    return knots, hats
 
 
 def scaled_lights(lights: LightArrays, gain: Float[Array, "NL 3"]) -> LightArrays:
@@ -70,6 +98,12 @@ class GridFlareModel(eqx.Module):
     chunks: Int[Array, ""]
     to_radiance: Float[Array, ""]
     """Splat units to pixel radiance (the camera equation), as the grid render applies."""
+    events: EventTable
+    """The flare paths' event columns (P, E), for :meth:`path_fresnel`."""
+    base_fresnel: Float[Array, "P L"]
+    """Each path's on-axis coated Fresnel factor with the scene's coatings (spectral grid)."""
+    band_nm: Float[Array, " B"]
+    band_averaging: Float[Array, "R B"]
     paths: tuple = eqx.field(static=True)
     """The flare paths (j, i), in the order of the path axes."""
     resolution: tuple[int, int] = eqx.field(static=True)
@@ -81,11 +115,27 @@ class GridFlareModel(eqx.Module):
     def num_paths(self) -> int:
         return len(self.paths)
 
-    def _splat(self, path_tint, dirt, light_gain, per_path: bool):
+    def path_fresnel(self, coating_indices: Float[Array, "S L"], coating_thicknesses_nm: Float[Array, "S L"]) -> Float[Array, "P Lw"]:
+        """Each flare path's on-axis coated Fresnel factor on the spectral grid for the lens with
+        these coating arrays (as :attr:`jaxflare.Lens.coating_indices` and
+        ``coating_thicknesses_nm``: layers in forward order, real indices, nm); differentiable."""
+        lens = self.setup.lens
+        dtype = lens.thickness_mm.dtype
+        lens = eqx.tree_at(
+            lambda l: (l.coating_indices, l.coating_thicknesses_nm), lens,
+            (jnp.asarray(coating_indices).astype(dtype), jnp.asarray(coating_thicknesses_nm).astype(dtype)),
+        )
+        return on_axis_fresnel(lens, self.events, self.setup.spectral.wavelength_nm.astype(dtype))
+
+    def _splat(self, path_tint, dirt, light_gain, per_path: bool, path_fresnel=None):
         setup = self.setup
         dtype = self.colour_bases.dtype
         gains = jnp.ones((self.num_lights, 3), dtype) if light_gain is None else jnp.asarray(light_gain).astype(dtype)
-        colour = jnp.einsum("k,kjmc->jmc", gains.reshape(-1), self.colour_bases)
+        if path_fresnel is None:
+            colour = jnp.einsum("k,kjmc->jmc", gains.reshape(-1), self.colour_bases)
+        else:
+            gained = dataclasses.replace(setup, lights=scaled_lights(setup.lights, gains))
+            colour = job_colours(gained, jnp.asarray(path_fresnel).astype(dtype), self.jobs.light, self.jobs.path, self.band_nm, self.band_averaging)
         jobs = dataclasses.replace(self.jobs, colour=colour, layer=self.job_slot if per_path else jnp.zeros_like(self.job_slot))
         effects = setup.effects if dirt is None else dataclasses.replace(setup.effects, dirt=jnp.asarray(dirt).astype(dtype))
         setup = dataclasses.replace(setup, path_tint=jnp.asarray(path_tint).astype(dtype), effects=effects)
@@ -94,11 +144,33 @@ class GridFlareModel(eqx.Module):
         acc = splat_subsamples(setup, jobs, self.table, acc, self.total, self.first, self.chunks)
         return COMPOSE_LEVELS(acc.buffer, width, height) * self.to_radiance
 
-    def image(self, path_tint: Float[Array, "P 3"], dirt: Float[Array, "Hd Wd C"] | None = None, light_gain: Float[Array, "NL 3"] | None = None):
+    def image(
+        self, path_tint: Float[Array, "P 3"], dirt: Float[Array, "Hd Wd C"] | None = None, light_gain: Float[Array, "NL 3"] | None = None,
+        path_fresnel: Float[Array, "P L"] | None = None,
+    ):
         """The flare (every flare path summed, H x W x 3, pixel radiance) for these path tints
         (each path's coating colour, unit = the lens's own coatings), front-lens transmission map
-        (None: the scene's own) and light gains (None: 1). Differentiable in all three; jit it."""
-        return self._splat(path_tint, dirt, light_gain, per_path=False)[0]
+        (None: the scene's own), light gains (None: 1) and paths' coated Fresnel factors (None: the
+        scene's coatings; else from :meth:`path_fresnel`). Differentiable in all four; jit it."""
+        if path_fresnel is not None and not self.setup.schlick:
+            raise ValueError("path_fresnel needs the Schlick Fresnel model (render.fresnel = 'schlick'): with 'exact' the coatings act per traced vertex")
+        return self._splat(path_tint, dirt, light_gain, per_path=False, path_fresnel=path_fresnel)[0]
+
+    def path_knot_images(self, dirt=None, *, step_nm: float = KNOT_STEP_NM, per_light_colour: bool = False):
+        """Each flare path's image with its Fresnel factor replaced by the hat function of one
+        spectral knot (:func:`knot_hats`): (P, B, K, H, W, 3), ``K`` as in :meth:`path_images`,
+        and the knots' indices into the spectral grid. The flare for Fresnel factors ``F`` (P, L)
+        is close to ``sum_pb F[p, knot_b] sum_K g_K image_pbK`` (exact when ``F`` is linear
+        between the knots)."""
+        knots, hats = knot_hats(np.asarray(self.setup.spectral.wavelength_nm), step_nm)
+        dtype = self.colour_bases.dtype
+        gains = [jnp.ones((self.num_lights, 3), dtype)] if not per_light_colour else [jnp.asarray(b, dtype) for b in gain_basis(self.num_lights)]
+        dirt = None if dirt is None else jnp.asarray(dirt, dtype)
+        per_knot = []
+        for hat in hats:  # one compiled splat, called B x K times
+            fresnel = jnp.broadcast_to(jnp.asarray(hat, dtype), self.base_fresnel.shape)
+            per_knot.append(jnp.stack([_per_path_splat(self, fresnel, g, dirt) for g in gains], axis=1))
+        return jnp.stack(per_knot, axis=1), knots
 
     def path_images(self, dirt=None, *, per_light_colour: bool = False):
         """Each flare path's image at unit tint: (P, K, H, W, 3) with ``K = 3 NL`` gain bases
@@ -109,6 +181,12 @@ class GridFlareModel(eqx.Module):
             return self._splat(ones, dirt, None, per_path=True)[:, None]
         basis = gain_basis(self.num_lights)
         return jnp.stack([self._splat(ones, dirt, jnp.asarray(b), per_path=True) for b in basis], axis=1)
+
+
+@eqx.filter_jit
+def _per_path_splat(model: GridFlareModel, path_fresnel, light_gain, dirt):
+    ones = jnp.ones((model.num_paths, 3), model.colour_bases.dtype)
+    return model._splat(ones, dirt, light_gain, per_path=True, path_fresnel=path_fresnel)
 
 
 def _model_scene(scene) -> Scene:
@@ -136,11 +214,14 @@ def grid_flare_model(
         gained = dataclasses.replace(setup, lights=scaled_lights(setup.lights, jnp.asarray(gain)))
         bases.append(job_table(gained, plan.jobs, plan.path_fresnel, plan.spectral.band_nm).colour)
     flare_paths = tuple(tuple(int(v) for v in p) for p in plan.paths)
+    fine, averaging = band_averaging(plan.spectral.band_nm)
     return GridFlareModel(
         setup=dataclasses.replace(setup, path_tint=jnp.ones_like(setup.path_tint)),
         table=prepared.table, jobs=prepared.jobs, colour_bases=jnp.stack(bases), job_slot=prepared.jobs.path,
         total=jnp.asarray(prepared.total, jnp.int32), first=jnp.asarray(prepared.first, jnp.int32), chunks=jnp.asarray(prepared.chunks, jnp.int32),
         to_radiance=jnp.asarray(radiance_scale(plan.lens, plan.pixel_pitch_mm), jnp.float32),
+        events=EventTable.from_array(np.stack(plan.events)), base_fresnel=jnp.asarray(plan.path_fresnel, jnp.float32),
+        band_nm=jnp.asarray(fine, jnp.float32), band_averaging=jnp.asarray(averaging, jnp.float32),
         paths=flare_paths, resolution=tuple(plan.scene.camera.resolution), num_lights=num_lights, subsamples=int(prepared.total),
         quality=plan.quality_name,
     )

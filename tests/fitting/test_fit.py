@@ -75,7 +75,7 @@ def test_a_fit_that_runs_out_of_steps_says_so_and_keeps_its_best(samples):
 
 def test_bad_fit_inputs_are_clear_errors(samples):
     plate = synthetic_plate(samples)
-    with pytest.raises(ValueError, match="params must be a non-empty subset of coatings, dirt, lights"):
+    with pytest.raises(ValueError, match="params must be a non-empty subset of coatings, thin-film, dirt, lights"):
         fitting.fit(SCENE, plate, params=("colours",), fixed=samples)
     with pytest.raises(ValueError, match="solver must be one of"):
         fitting.fit(SCENE, plate, params=("coatings",), solver="adam", fixed=samples)
