@@ -52,7 +52,18 @@ from ._forward import (
     render_image,
     reweighted,
 )
-from ._grid_model import FilmImages, film_image_model, film_images_bytes, grid_film_images, grid_interfaces, grid_path_images
+from ._grid_model import (
+    DirtImages,
+    FilmImages,
+    dirt_image_model,
+    dirt_images_bytes,
+    film_image_model,
+    film_images_bytes,
+    grid_dirt_images,
+    grid_film_images,
+    grid_interfaces,
+    grid_path_images,
+)
 from ._plate import Plate, check_fittable
 from ._thin_film import INDEX_PRIOR_WEIGHT, FilmLayers, air_side_stacks, equivalent_tints, film_arrays, film_layers, film_start_logits, film_values
 
@@ -352,7 +363,10 @@ def fit(
     if tint_prior_weight is None:
         tint_prior_weight = TINT_PRIOR_WEIGHTS[model]
     built = [
-        _plate_model(s, p, f, model, params, block, samples=samples, seed=seed, method=method, paths=paths, grid_quality=grid_quality)
+        _plate_model(
+            s, p, f, model, params, block, samples=samples, seed=seed, method=method, paths=paths, grid_quality=grid_quality,
+            dirt_shape=(dirt_resolution, dirt_resolution),
+        )
         for s, p, f in zip(scenes, plates, fixeds)
     ]
     with jax.enable_x64(True):
@@ -386,6 +400,8 @@ def fit(
 
         def model_image(k, tints, dirt, gain, film=None):
             forward, gain = forwards[k], gain[gain_offsets[k] : gain_offsets[k + 1]] if "lights" in params else None
+            if isinstance(forward, DirtImages):
+                return dirt_image_model(forward, tints, dirt, gain)
             if isinstance(forward, FilmImages):
                 fresnel = built[k].grid.path_fresnel(*film_arrays(layers, *film))
                 return film_image_model(forward, fresnel.astype(jnp.float64), tints, gain)
@@ -527,7 +543,7 @@ class _BuiltModel:
     samples: int
 
 
-def _plate_model(scene, plate: Plate, fixed, model: str, params, block: int, *, samples, seed, method, paths, grid_quality) -> _BuiltModel:
+def _plate_model(scene, plate: Plate, fixed, model: str, params, block: int, *, samples, seed, method, paths, grid_quality, dirt_shape=(16, 16)) -> _BuiltModel:
     """The forward model of one plate: built (or checked, when ``fixed``) for its resolution, weights and block."""
     width, height = scene.camera.resolution
     grid_flare = None
@@ -537,7 +553,10 @@ def _plate_model(scene, plate: Plate, fixed, model: str, params, block: int, *, 
         grid_flare = fixed if fixed is not None else grid_flare_model(scene, grid_quality, paths=paths, **(FINE_GRID if width * height <= FINE_GRID_PIXELS else {}))
         # with the dirt map fixed the flare is a tinted sum of per-path images; a dirt fit re-splats
         per_light = "lights" in params
-        if "dirt" in params:  # the flare is not a sum of fixed images in the dirt map: re-splat
+        if "dirt" in params and "thin-film" not in params:  # a sum of per-path, per-dirt-cell images, where they fit in memory
+            small = dirt_images_bytes(grid_flare, dirt_shape, block, per_light_colour=per_light) <= PATH_IMAGE_BYTES
+            forward = grid_dirt_images(grid_flare, dirt_shape, plate.weight, block, per_light_colour=per_light) if small else grid_flare
+        elif "dirt" in params:  # re-splat the fixed sub-samples for every dirt map and coating the solver tries
             forward = grid_flare
         elif "thin-film" in params:  # a sum of per-path, per-spectral-knot images, where they fit in memory
             small = film_images_bytes(grid_flare, block, per_light_colour=per_light) <= PATH_IMAGE_BYTES
@@ -565,7 +584,7 @@ def _plate_model(scene, plate: Plate, fixed, model: str, params, block: int, *, 
 
 
 def _num_lights(forward) -> int:
-    if isinstance(forward, (GridFlareModel, PathImages, FilmImages)):
+    if isinstance(forward, (GridFlareModel, PathImages, FilmImages, DirtImages)):
         return forward.num_lights
     return int(forward.setup.lights.kind.shape[0])
 

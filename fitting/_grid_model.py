@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflare.rendering import GridFlareModel, knot_hats
+from jaxflare.rendering import GridFlareModel, gain_basis, knot_hats
 
 from ._forward import FULL_IMAGE_BYTES, PathImages, _path_tints, _weighted_blocks
 
@@ -90,3 +90,50 @@ def film_image_model(images: FilmImages, path_fresnel, interface_tints, light_ga
     weights = jnp.asarray(path_fresnel)[:, np.asarray(images.knots)].astype(images.images.dtype)  # (P, B)
     gains = jnp.ones((1,), images.images.dtype) if images.images.shape[2] == 1 else jnp.asarray(light_gain).reshape(-1).astype(images.images.dtype)
     return jnp.einsum("pc,pb,k,pbkhwc->hwc", tints, weights, gains, images.images)
+
+
+class DirtImages(eqx.Module):
+    """Each flare path's grid image for each cell of a one-hot dirt map, weighted and
+    block-summed: the forward model of a dirt fit where it fits in memory. The flare is linear in
+    the dirt map (each sub-sample reads it bilinearly where it crosses the front lens) and in the
+    tints and gains, so it is a weighted sum of these images, exactly."""
+
+    images: jax.Array
+    """(P, D, K, h, w, 3): path, dirt cell (row-major over the map), light gain basis."""
+    dirt_shape: tuple[int, int] = eqx.field(static=True)
+    path_interfaces: jax.Array
+    num_lights: int = eqx.field(static=True)
+
+
+def dirt_images_bytes(flare: GridFlareModel, dirt_shape, block: int, *, per_light_colour: bool) -> int:
+    """Size (float64) of :func:`grid_dirt_images`' stack."""
+    width, height = flare.resolution
+    bases = 3 * flare.num_lights if per_light_colour else 1
+    return 8 * flare.num_paths * int(np.prod(dirt_shape)) * bases * (width // block) * (height // block) * 3
+
+
+def grid_dirt_images(flare: GridFlareModel, dirt_shape, pixel_weight=None, block: int = 1, *, per_light_colour: bool = False) -> DirtImages:
+    """The one-hot dirt-cell images of ``flare`` (one splat per cell and gain basis), weighted by
+    ``pixel_weight`` and summed over ``block`` x ``block`` pixels as they are made."""
+    width, height = flare.resolution
+    if height % block or width % block:
+        raise ValueError(f"block must divide the resolution {width} x {height}, got {block}")
+    rows, columns = (int(v) for v in dirt_shape)
+    weight = np.ones((height, width)) if pixel_weight is None else np.asarray(pixel_weight, np.float64)
+    gains = [None] if not per_light_colour else list(gain_basis(flare.num_lights))
+    cells = []
+    for cell in range(rows * columns):
+        one_hot = np.zeros((rows, columns, 1), np.float32)
+        one_hot.flat[cell] = 1.0
+        full = np.stack([np.asarray(flare.per_path_image(one_hot, g), np.float32) for g in gains], axis=1)  # (P, K, H, W, 3)
+        cells.append(_weighted_blocks(full, weight, block))
+    images = np.stack(cells, axis=1)  # (P, D, K, h, w, 3)
+    return DirtImages(images=jnp.asarray(images), dirt_shape=(rows, columns), path_interfaces=jnp.asarray(grid_interfaces(flare)), num_lights=flare.num_lights)
+
+
+def dirt_image_model(images: DirtImages, interface_tints, dirt, light_gain=None):
+    """The weighted, block-summed flare for interface tints, a dirt map (rows, columns, 1) and light gains."""
+    tints = _path_tints(images.path_interfaces, interface_tints)
+    cells = jnp.asarray(dirt).reshape(-1).astype(images.images.dtype)
+    gains = jnp.ones((1,), images.images.dtype) if images.images.shape[2] == 1 else jnp.asarray(light_gain).reshape(-1).astype(images.images.dtype)
+    return jnp.einsum("pc,d,k,pdkhwc->hwc", tints, cells, gains, images.images)

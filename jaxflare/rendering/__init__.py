@@ -17,7 +17,7 @@ equation (2), splat) and returns a :class:`RenderResult` with typed :class:`Rend
 
 from . import effects
 from ._adaptive import SamplingTable, draw, masked_table, uniform_table
-from ._grid_model import KNOT_STEP_NM, GridFlareModel, grid_flare_model, knot_hats, scaled_lights
+from ._grid_model import KNOT_STEP_NM, GridFlareModel, gain_basis, grid_flare_model, knot_hats, scaled_lights
 from ._grid_plan import GridPlan, PreparedGrid, grid_layers, plan_grid, prepare_grid, run_grid
 from ._gamut import clip_to_gamut
 from ._grid_render import grid_result, render_grid
@@ -73,6 +73,7 @@ __all__ = [
     "GridFlareModel",
     "KNOT_STEP_NM",
     "knot_hats",
+    "gain_basis",
     "grid_flare_model",
     "scaled_lights",
     "AUTO_MAX_FALLBACK",

@@ -156,6 +156,14 @@ class GridFlareModel(eqx.Module):
             raise ValueError("path_fresnel needs the Schlick Fresnel model (render.fresnel = 'schlick'): with 'exact' the coatings act per traced vertex")
         return self._splat(path_tint, dirt, light_gain, per_path=False, path_fresnel=path_fresnel)[0]
 
+    def per_path_image(self, dirt=None, light_gain=None, path_fresnel=None):
+        """Each flare path's image (P, H, W, 3) at unit tint for this dirt map, light gains and
+        Fresnel factors (None: the scene's); jitted, one compile per shape. The flare is linear in
+        the dirt map (bilinear lookup), so images for one-hot maps are a basis of its dependence."""
+        dtype = self.colour_bases.dtype
+        gain = jnp.ones((self.num_lights, 3), dtype) if light_gain is None else jnp.asarray(light_gain, dtype)
+        return _per_path_splat(self, path_fresnel, gain, None if dirt is None else jnp.asarray(dirt, dtype))
+
     def path_knot_images(self, dirt=None, *, step_nm: float = KNOT_STEP_NM, per_light_colour: bool = False):
         """Each flare path's image with its Fresnel factor replaced by the hat function of one
         spectral knot (:func:`knot_hats`): (P, B, K, H, W, 3), ``K`` as in :meth:`path_images`,
