@@ -3,7 +3,9 @@
 Usage:  python benchmarks/run_all.py [--quick] [--only NAME ...] [--list] [-- extra args for every benchmark]
 
 Benchmarks (``--only`` takes the name with or without ``bench_``): ``fitting`` (plate-fitting solvers:
-recovered coatings and dirt against wall time on synthetic plates), ``polynomial`` (path-system error
+recovered coatings and dirt against wall time on synthetic plates), ``plate_fits`` (the table of
+grid-model fits on a Zemax double Gauss the tests do not fit: coatings, thin film, coatings + dirt
+from three plates), ``polynomial`` (path-system error
 against throughput), ``render`` (demo-scene render times and noise against the paper's budgets),
 ``sampling`` (noise against time per sampling mode; time saved and error of each modelling
 shortcut), ``trace`` (exact-trace throughput against optiland).
