@@ -7,8 +7,9 @@ summed over blocks of pixels), divided by the norm of the weighted plate so the 
 plus a weak prior on the dirt map (``dirt_prior_weight x (d - prior)``) so cells the flare never
 lights stay at their prior instead of drifting, and on the tints towards 1. Solvers (``solver=``):
 
-- ``"levenberg-marquardt"`` and ``"gauss-newton"``: least squares with a matrix-free linear solver
-  (``lineax.Normal(lineax.CG(...))``), which scales to large dirt maps;
+- ``"levenberg-marquardt"`` and ``"gauss-newton"``: least squares, each step's linear system solved
+  densely (``lineax.QR``) for fits of at most :data:`DENSE_PARAMETERS` parameters without the dirt
+  map, else matrix-free (``lineax.Normal(lineax.CG(...))``), which scales to large dirt maps;
 - ``"bfgs"``: a quasi-Newton minimiser of the sum of squares (dense inverse Hessian: small fits).
 
 The fit runs in float64 on a forward model: by default the deterministic grid estimator
@@ -298,7 +299,10 @@ def fit(
     tuples with one entry per plate.
 
     The others keep the scene's values (its ``coating_tints``, its dirt map, gains 1); fitted
-    tints start from the scene's, the dirt map from ``dirt_prior`` (a clean lens). The loss is
+    tints start from the scene's, the dirt map from ``dirt_prior`` (a clean lens). ``"thin-film"``
+    fits the layers of the scene's coating stacks (thickness and index, :mod:`fitting._thin_film`)
+    instead of free tints (not both), through the grid model only; the result then reports the
+    layers (``coating_layers``, ``coating_stacks``) and the tints they are equivalent to. The loss is
     ``0.5 |w (render - plate)|^2 / |w plate|^2`` (``w``: the plate's weights, block-summed;
     numerator and denominator summed over the plates) plus
     the priors ``0.5 dirt_prior_weight |dirt - dirt_prior|^2`` and ``0.5 tint_prior_weight
@@ -308,7 +312,9 @@ def fit(
     estimator (:func:`jaxflare.rendering.grid_flare_model`, at ``grid_quality``; plates of at most
     :data:`FINE_GRID_PIXELS` get the finer :data:`FINE_GRID`) and fits through it: noise-free, so
     the fit is not biased by the model's own noise, and it fits any parameters (coatings and lights
-    through its per-path images, the dirt map by re-splatting its fixed sub-samples);
+    through its per-path images, the dirt map through per-path images of each one-hot dirt cell and
+    thin-film layers through per-path images of each spectral knot, where those fit in
+    :data:`~fitting._forward.PATH_IMAGE_BYTES`, else by re-splatting its fixed sub-samples);
     ``"path-images"`` renders each flare path once with Monte Carlo, ``samples`` samples (default
     2**22), and fits their tinted sum (coatings and lights only); ``"samples"`` keeps the
     ``samples`` Monte Carlo samples (default 2**19) themselves; ``"auto"`` picks the grid unless
