@@ -2,9 +2,11 @@
 
 The grid render is deterministic: its model of the flare has no Monte Carlo noise, so a
 least-squares fit through it is unbiased and its loss is smooth. With the dirt map fixed the fit
-needs only each path's image (:func:`grid_path_images`, as :class:`~._forward.PathImages`), and a
-thin-film fit each path's image per spectral knot (:func:`grid_film_images`); a fit of the dirt
-map re-splats the grid's fixed sub-samples for every dirt map the solver tries.
+needs only each path's image (:func:`grid_path_images`, as :class:`~._forward.PathImages`), a
+thin-film fit each path's image per spectral knot (:func:`grid_film_images`) and a dirt fit each
+path's image per cell of a one-hot dirt map (:func:`grid_dirt_images`): the flare is linear in
+each. Where a stack does not fit in memory the fit re-splats the grid's fixed sub-samples for
+every parameter the solver tries.
 """
 
 from __future__ import annotations
@@ -27,13 +29,35 @@ def grid_interfaces(flare: GridFlareModel) -> np.ndarray:
 _path_images = eqx.filter_jit(lambda flare, per_light_colour: flare.path_images(per_light_colour=per_light_colour))
 
 
+def _check_block(flare: GridFlareModel, block: int) -> None:
+    width, height = flare.resolution
+    if height % block or width % block:
+        raise ValueError(f"block must divide the resolution {width} x {height}, got {block}")
+
+
+def _stack_bytes(flare: GridFlareModel, count: int, block: int, per_light_colour: bool) -> int:
+    """Size (float64) of a block-summed stack of ``count`` images per path and gain basis."""
+    width, height = flare.resolution
+    bases = 3 * flare.num_lights if per_light_colour else 1
+    return 8 * flare.num_paths * count * bases * (width // block) * (height // block) * 3
+
+
+def _pooled_stack(flare: GridFlareModel, pixel_weight, block: int, per_light_colour: bool, images_of) -> np.ndarray:
+    """``images_of(gain)`` (per-path images, (P, H, W, 3)) for each gain basis, weighted and
+    block-summed as they are made (the full-resolution images are never all held): (P, K, h, w, 3)."""
+    width, height = flare.resolution
+    weight = np.ones((height, width)) if pixel_weight is None else np.asarray(pixel_weight, np.float64)
+    gains = [None] if not per_light_colour else list(gain_basis(flare.num_lights))
+    full = np.stack([np.asarray(images_of(g), np.float32) for g in gains], axis=1)
+    return _weighted_blocks(full, weight, block)
+
+
 def grid_path_images(flare: GridFlareModel, pixel_weight=None, block: int = 1, *, per_light_colour: bool = False) -> PathImages:
     """Each flare path's grid image (unit tints, the scene's dirt map), weighted by
     ``pixel_weight`` and summed over ``block`` x ``block`` pixels; the full-resolution images are
     kept when they fit in :data:`~._forward.FULL_IMAGE_BYTES` (float32)."""
+    _check_block(flare, block)
     width, height = flare.resolution
-    if height % block or width % block:
-        raise ValueError(f"block must divide the resolution {width} x {height}, got {block}")
     full = np.asarray(_path_images(flare, per_light_colour), np.float32)  # (P, K, H, W, 3)
     weight = np.ones((height, width)) if pixel_weight is None else np.asarray(pixel_weight, np.float64)
     images = _weighted_blocks(full, weight, block)
@@ -60,25 +84,18 @@ class FilmImages(eqx.Module):
 
 def film_images_bytes(flare: GridFlareModel, block: int, *, per_light_colour: bool) -> int:
     """Size (float64) of :func:`grid_film_images`' stack."""
-    width, height = flare.resolution
     knots, _ = knot_hats(np.asarray(flare.setup.spectral.wavelength_nm))
-    bases = 3 * flare.num_lights if per_light_colour else 1
-    return 8 * flare.num_paths * knots.size * bases * (width // block) * (height // block) * 3
+    return _stack_bytes(flare, knots.size, block, per_light_colour)
 
 
 def grid_film_images(flare: GridFlareModel, pixel_weight=None, block: int = 1, *, per_light_colour: bool = False) -> FilmImages:
-    """The knot images of ``flare`` weighted by ``pixel_weight`` and summed over ``block`` x ``block``."""
-    width, height = flare.resolution
-    if height % block or width % block:
-        raise ValueError(f"block must divide the resolution {width} x {height}, got {block}")
-    knots, _ = knot_hats(np.asarray(flare.setup.spectral.wavelength_nm))
-    weight = np.ones((height, width)) if pixel_weight is None else np.asarray(pixel_weight, np.float64)
-    full, found = flare.path_knot_images(per_light_colour=per_light_colour)
-    full = np.asarray(full, np.float32)  # (P, B, K, H, W, 3)
-    num_paths, num_knots, num_bases = full.shape[:3]
-    stacks = _weighted_blocks(full.reshape(num_paths * num_knots, num_bases, height, width, 3), weight, block)
+    """The knot images of ``flare`` (:meth:`GridFlareModel.path_knot_images`, one splat per knot
+    and gain basis) weighted by ``pixel_weight`` and summed over ``block`` x ``block`` as they are made."""
+    _check_block(flare, block)
+    knots, fresnels = flare.knot_fresnels()
+    stacks = [_pooled_stack(flare, pixel_weight, block, per_light_colour, lambda g: flare.per_path_image(None, g, fresnel)) for fresnel in fresnels]
     return FilmImages(
-        images=jnp.asarray(stacks.reshape(num_paths, num_knots, num_bases, height // block, width // block, 3)), knots=tuple(int(k) for k in found),
+        images=jnp.asarray(np.stack(stacks, axis=1)), knots=tuple(int(k) for k in knots),
         path_interfaces=jnp.asarray(grid_interfaces(flare)), num_lights=flare.num_lights,
     )
 
@@ -107,28 +124,23 @@ class DirtImages(eqx.Module):
 
 def dirt_images_bytes(flare: GridFlareModel, dirt_shape, block: int, *, per_light_colour: bool) -> int:
     """Size (float64) of :func:`grid_dirt_images`' stack."""
-    width, height = flare.resolution
-    bases = 3 * flare.num_lights if per_light_colour else 1
-    return 8 * flare.num_paths * int(np.prod(dirt_shape)) * bases * (width // block) * (height // block) * 3
+    return _stack_bytes(flare, int(np.prod(dirt_shape)), block, per_light_colour)
 
 
 def grid_dirt_images(flare: GridFlareModel, dirt_shape, pixel_weight=None, block: int = 1, *, per_light_colour: bool = False) -> DirtImages:
     """The one-hot dirt-cell images of ``flare`` (one splat per cell and gain basis), weighted by
     ``pixel_weight`` and summed over ``block`` x ``block`` pixels as they are made."""
-    width, height = flare.resolution
-    if height % block or width % block:
-        raise ValueError(f"block must divide the resolution {width} x {height}, got {block}")
+    _check_block(flare, block)
     rows, columns = (int(v) for v in dirt_shape)
-    weight = np.ones((height, width)) if pixel_weight is None else np.asarray(pixel_weight, np.float64)
-    gains = [None] if not per_light_colour else list(gain_basis(flare.num_lights))
     cells = []
     for cell in range(rows * columns):
         one_hot = np.zeros((rows, columns, 1), np.float32)
         one_hot.flat[cell] = 1.0
-        full = np.stack([np.asarray(flare.per_path_image(one_hot, g), np.float32) for g in gains], axis=1)  # (P, K, H, W, 3)
-        cells.append(_weighted_blocks(full, weight, block))
-    images = np.stack(cells, axis=1)  # (P, D, K, h, w, 3)
-    return DirtImages(images=jnp.asarray(images), dirt_shape=(rows, columns), path_interfaces=jnp.asarray(grid_interfaces(flare)), num_lights=flare.num_lights)
+        cells.append(_pooled_stack(flare, pixel_weight, block, per_light_colour, lambda g: flare.per_path_image(one_hot, g)))
+    return DirtImages(
+        images=jnp.asarray(np.stack(cells, axis=1)), dirt_shape=(rows, columns), path_interfaces=jnp.asarray(grid_interfaces(flare)),
+        num_lights=flare.num_lights,
+    )
 
 
 def dirt_image_model(images: DirtImages, interface_tints, dirt, light_gain=None):

@@ -164,20 +164,22 @@ class GridFlareModel(eqx.Module):
         gain = jnp.ones((self.num_lights, 3), dtype) if light_gain is None else jnp.asarray(light_gain, dtype)
         return _per_path_splat(self, path_fresnel, gain, None if dirt is None else jnp.asarray(dirt, dtype))
 
-    def path_knot_images(self, dirt=None, *, step_nm: float = KNOT_STEP_NM, per_light_colour: bool = False):
-        """Each flare path's image with its Fresnel factor replaced by the hat function of one
-        spectral knot (:func:`knot_hats`): (P, B, K, H, W, 3), ``K`` as in :meth:`path_images`,
-        and the knots' indices into the spectral grid. The flare for Fresnel factors ``F`` (P, L)
-        is close to ``sum_pb F[p, knot_b] sum_K g_K image_pbK`` (exact when ``F`` is linear
-        between the knots)."""
+    def knot_fresnels(self, step_nm: float = KNOT_STEP_NM):
+        """The spectral knots (:func:`knot_hats`: indices into the spectral grid) and, per knot,
+        every path's Fresnel factor replaced by the knot's hat function (P, L)."""
         knots, hats = knot_hats(np.asarray(self.setup.spectral.wavelength_nm), step_nm)
         dtype = self.colour_bases.dtype
-        gains = [jnp.ones((self.num_lights, 3), dtype)] if not per_light_colour else [jnp.asarray(b, dtype) for b in gain_basis(self.num_lights)]
-        dirt = None if dirt is None else jnp.asarray(dirt, dtype)
-        per_knot = []
-        for hat in hats:  # one compiled splat, called B x K times
-            fresnel = jnp.broadcast_to(jnp.asarray(hat, dtype), self.base_fresnel.shape)
-            per_knot.append(jnp.stack([_per_path_splat(self, fresnel, g, dirt) for g in gains], axis=1))
+        return knots, [jnp.broadcast_to(jnp.asarray(hat, dtype), self.base_fresnel.shape) for hat in hats]
+
+    def path_knot_images(self, dirt=None, *, step_nm: float = KNOT_STEP_NM, per_light_colour: bool = False):
+        """Each flare path's image with its Fresnel factor replaced by the hat function of one
+        spectral knot (:meth:`knot_fresnels`): (P, B, K, H, W, 3), ``K`` as in :meth:`path_images`,
+        and the knots' indices into the spectral grid. The flare for Fresnel factors ``F`` (P, L)
+        is close to ``sum_pb F[p, knot_b] sum_K g_K image_pbK`` (exact when ``F`` is linear
+        between the knots). Full resolution: a fit pools each knot's images as they are made."""
+        knots, fresnels = self.knot_fresnels(step_nm)
+        gains = [None] if not per_light_colour else list(gain_basis(self.num_lights))
+        per_knot = [jnp.stack([self.per_path_image(dirt, g, fresnel) for g in gains], axis=1) for fresnel in fresnels]
         return jnp.stack(per_knot, axis=1), knots
 
     def path_images(self, dirt=None, *, per_light_colour: bool = False):

@@ -16,15 +16,13 @@ import jaxflare as jf
 from fitting._forward import _path_tints
 from fitting._grid_model import grid_interfaces, grid_path_images
 from jaxflare.rendering import grid_flare_model, render_grid
+from tests.helpers import BIOTAR_TWO_LIGHTS, flare_only
 
 jax = pytest.importorskip("jax")
 jnp = jax.numpy
 eqx = pytest.importorskip("equinox")
 
-SCENE = jf.Scene(
-    camera=jf.Camera(lens="zeiss_biotar", f_number=4.0, resolution=(64, 48), look_at_m=(0.0, 0.0, -10.0)),
-    lights=(jf.Light(kind="directional", direction=(0.06, 0.03, -1.0)), jf.Light(kind="directional", direction=(-0.04, 0.02, -1.0), rgb=(1.0, 0.8, 0.6))),
-)
+SCENE = BIOTAR_TWO_LIGHTS
 TRUE_TINTS = np.ones((10, 3))
 TRUE_TINTS[7] = (1.0, 0.6, 0.3)
 TRUE_TINTS[4] = (0.5, 0.9, 1.2)
@@ -34,10 +32,6 @@ IMAGE = eqx.filter_jit(lambda model, tint, dirt, gain: model.image(tint, dirt, g
 def with_tints(scene, tints):
     camera = dataclasses.replace(scene.camera, coating_tints=tuple((k, tuple(map(float, rgb))) for k, rgb in enumerate(tints)))
     return dataclasses.replace(scene, camera=camera)
-
-
-def flare_only(scene):
-    return dataclasses.replace(scene, render=dataclasses.replace(scene.render, core=False, cull_threshold=0.0))
 
 
 @pytest.fixture(scope="module")

@@ -6,19 +6,16 @@ the fixed sub-samples with the same parameters."""
 import numpy as np
 import pytest
 
-import jaxflare as jf
 from fitting._forward import _path_tints
 from fitting._grid_model import dirt_image_model, grid_dirt_images, grid_interfaces
 from jaxflare.rendering import grid_flare_model
+from tests.helpers import BIOTAR_TWO_LIGHTS
 
 jax = pytest.importorskip("jax")
 jnp = jax.numpy
 eqx = pytest.importorskip("equinox")
 
-SCENE = jf.Scene(
-    camera=jf.Camera(lens="zeiss_biotar", f_number=4.0, resolution=(64, 48), look_at_m=(0.0, 0.0, -10.0)),
-    lights=(jf.Light(kind="directional", direction=(0.06, 0.03, -1.0)), jf.Light(kind="directional", direction=(-0.04, 0.02, -1.0), rgb=(1.0, 0.8, 0.6))),
-)
+SCENE = BIOTAR_TWO_LIGHTS
 IMAGE = eqx.filter_jit(lambda model, tint, dirt, gain: model.image(tint, dirt, gain))
 
 

@@ -16,15 +16,13 @@ import jaxflare as jf
 from fitting._thin_film import film_layers
 from jaxflare.rendering import grid_flare_model
 from jaxflare.scenes import SurfaceCoating, camera_lens
+from tests.helpers import BIOTAR_TWO_LIGHTS, flare_only
 
 jax = pytest.importorskip("jax")
 jnp = jax.numpy
 eqx = pytest.importorskip("equinox")
 
-SCENE = jf.Scene(
-    camera=jf.Camera(lens="zeiss_biotar", f_number=4.0, resolution=(64, 48), look_at_m=(0.0, 0.0, -10.0), coating="mgf2"),
-    lights=(jf.Light(kind="directional", direction=(0.06, 0.03, -1.0)), jf.Light(kind="directional", direction=(-0.04, 0.02, -1.0), rgb=(1.0, 0.8, 0.6))),
-)
+SCENE = dataclasses.replace(BIOTAR_TWO_LIGHTS, camera=dataclasses.replace(BIOTAR_TWO_LIGHTS.camera, coating="mgf2"))
 QUARTER_WAVE_NM = 550.0 / (4 * 1.38)
 TRUE_SCALE = {1: 0.85, 4: 1.15, 8: 1.3}
 IMAGE = eqx.filter_jit(lambda model, fresnel: model.image(jnp.ones((model.num_paths, 3)), None, None, fresnel))
@@ -34,10 +32,6 @@ FRESNEL = eqx.filter_jit(lambda model, indices, thicknesses: model.path_fresnel(
 def with_stacks(scene, scale):
     overrides = tuple(SurfaceCoating(surfaces=(s,), layers=((1.38, QUARTER_WAVE_NM * f),)) for s, f in scale.items())
     return dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, surface_coatings=overrides))
-
-
-def flare_only(scene):
-    return dataclasses.replace(scene, render=dataclasses.replace(scene.render, core=False, cull_threshold=0.0))
 
 
 @pytest.fixture(scope="module")
