@@ -664,9 +664,9 @@ def _standard_errors(data_residuals, fitted: dict, *, prior_weights: dict, resid
     the physical parameters, ``W`` the priors' weights (``prior_weights``, name -> a weight per
     entry or one for all: the loss's own Hessian, so a parameter the plate does not show keeps
     the prior's spread), ``s^2`` the residuals' mean square (the plate's noise and the model's own
-    error together) and ``kappa`` >= 1 the residuals' spatial correlation: the variance of 2 x 2
-    sums of residuals over 4 times their variance (1 for independent pixels; a model error spread
-    over a ghost counts fewer times than it has pixels). Returns the errors with the priors and
+    error together) and ``kappa`` >= 1 the residuals' spatial correlation
+    (:func:`residual_correlation`: 1 for independent pixels; a model error spread over a ghost
+    counts fewer times than it has pixels). Returns the errors with the priors and
     without them (whether the plate alone determines a parameter, as ``tint_observable``), as
     dicts like ``fitted``; directions nothing constrains get infinite errors."""
     names = list(fitted)
@@ -708,29 +708,40 @@ def _inverse_diagonal(normal: np.ndarray) -> np.ndarray:
         return np.nansum(np.where(eigenvectors**2 > 1e-12, eigenvectors**2 * inverse_eigen, 0.0), axis=1)
 
 
+CORRELATION_BLOCKS = (2, 4, 8)
+"""Block sides (pixels) over which :func:`residual_correlation` looks for correlated residuals."""
+
+
 def residual_correlation(residuals: np.ndarray, shape) -> float:
-    """``kappa`` of :func:`_standard_errors`: the variance of 2 x 2 sums of the residual image
-    (``shape``: (H, W, C), or a list of shapes for the plates' residuals one after the other) over
-    4 times the residuals' variance, at least 1 (1 when ``shape`` is None or every image is
-    smaller than 2 x 2)."""
+    """``kappa`` of :func:`_standard_errors`: how many pixels a residual is spread over. For each
+    block side ``b`` of :data:`CORRELATION_BLOCKS`, the sum of squared ``b x b`` sums of the residual
+    images (``shape``: (H, W, C), or a list of shapes for the plates' residuals one after the other)
+    over the sum of squared residuals: 1 when pixels are independent, ``b^2`` when a model error is
+    the same over the whole block. The largest over the sides the images are large enough for, at
+    least 1 (1 when ``shape`` is None or every image is smaller than 2 x 2). A model error spread
+    over a ghost counts as few independent residuals as it has blocks."""
     if shape is None:
         return 1.0
     shapes = [tuple(shape)] if isinstance(shape, tuple) and all(isinstance(v, int) for v in shape) else [tuple(v) for v in shape]
     residuals = np.asarray(residuals, np.float64).ravel()
-    single = paired = 0.0
+    images = []
     offset = 0
     for one in shapes:
         size = int(np.prod(one))
-        image = residuals[offset : offset + size].reshape(one)
+        images.append(residuals[offset : offset + size].reshape(one))
         offset += size
-        if one[0] < 2 or one[1] < 2:
-            continue
-        h, w = one[0] // 2 * 2, one[1] // 2 * 2
-        single += float(np.sum(image[:h, :w] ** 2))
-        paired += float(np.sum(image[:h, :w].reshape(h // 2, 2, w // 2, 2, -1).sum(axis=(1, 3)) ** 2))
-    if not single > 0:
-        return 1.0
-    return max(1.0, paired / single)  # sum of squared 2 x 2 sums over sum of squares: 1 when independent
+    kappa = 1.0
+    for side in CORRELATION_BLOCKS:
+        single = paired = 0.0
+        for image in images:
+            if image.shape[0] < side or image.shape[1] < side:
+                continue
+            h, w = image.shape[0] // side * side, image.shape[1] // side * side
+            single += float(np.sum(image[:h, :w] ** 2))
+            paired += float(np.sum(image[:h, :w].reshape(h // side, side, w // side, side, -1).sum(axis=(1, 3)) ** 2))
+        if single > 0:
+            kappa = max(kappa, paired / single)
+    return kappa
 
 
 def save_fit(result: FitResult, path: str | os.PathLike) -> str:
