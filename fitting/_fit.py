@@ -8,8 +8,9 @@ plus a weak prior on the dirt map (``dirt_prior_weight x (d - prior)``) so cells
 lights stay at their prior instead of drifting, and on the tints towards 1. Solvers (``solver=``):
 
 - ``"levenberg-marquardt"`` and ``"gauss-newton"``: least squares, each step's linear system solved
-  densely (``lineax.QR``) for fits of at most :data:`DENSE_PARAMETERS` parameters without the dirt
-  map, else matrix-free (``lineax.Normal(lineax.CG(...))``), which scales to large dirt maps;
+  densely (``lineax.QR``) for fits of at most :data:`DENSE_PARAMETERS` parameters (a dirt map only
+  through per-cell images), else matrix-free (``lineax.Normal(lineax.CG(...))``), which scales to
+  large dirt maps;
 - ``"bfgs"``: a quasi-Newton minimiser of the sum of squares (dense inverse Hessian: small fits).
 
 The fit runs in float64 on a forward model: by default the deterministic grid estimator
@@ -224,11 +225,13 @@ class FitResult:
 
 
 DENSE_PARAMETERS = 128
-"""Fits of at most this many parameters, the dirt map not among them, solve each step's linear
-system densely (QR of the Jacobian, one forward-mode pass per parameter); larger ones, and every
-dirt fit (whose re-splat is too large to batch over parameters), matrix-free with conjugate
-gradients on the normal equations. Measured on a 64 x 48 thin-film fit of 8 layers: 1.6 s per
-step matrix-free (CG runs to hundreds of iterations on its ill-conditioned normal matrix)."""
+"""Fits of at most this many parameters solve each step's linear system densely (QR of the
+Jacobian, one forward-mode pass per parameter), unless they fit the dirt map by re-splatting the
+grid's sub-samples or re-tracing samples (too large to batch over parameters); larger ones, and
+those dirt fits, go matrix-free with conjugate gradients on the normal equations. A dirt map fitted
+through per-cell images (:class:`~._grid_model.DirtImages`) is solved densely like the tints.
+Measured on a 64 x 48 thin-film fit of 8 layers: 1.6 s per step matrix-free (CG runs to hundreds
+of iterations on its ill-conditioned normal matrix)."""
 
 
 def _solver(name: str, rtol: float, atol: float, verbose=False, dense: bool = False):
@@ -355,6 +358,8 @@ def fit(
     if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
         raise ValueError(f"max_steps must be an integer of at least 1, got {max_steps!r}")
     _solver(solver, rtol, atol)  # a bad solver name fails before any rendering
+    if progress is not None and not callable(progress):
+        raise ValueError(f"progress must be a callable progress(step, loss) or None, got {progress!r}")
     for p in plates:
         check_fittable(p)  # and so does a plate no flare can match
     num_interfaces = _shared_lens_interfaces(scenes)
@@ -439,7 +444,10 @@ def fit(
             return jnp.concatenate(parts)
 
         num_free = sum(int(np.size(leaf)) for leaf in jax.tree.leaves(free))
-        dense = "dirt" not in params and num_free <= DENSE_PARAMETERS
+        # a dirt map fitted by re-splatting (or re-tracing) is too large to batch over parameters;
+        # through per-cell image stacks the dirt is as linear and as cheap as the tints
+        resplats = "dirt" in params and not all(isinstance(f, DirtImages) for f in forwards)
+        dense = not resplats and num_free <= DENSE_PARAMETERS
         best, history, steps, converged, status = _solve(residuals, free, solver, rtol, atol, max_steps, progress, dense=dense)
         tints, dirt, gain, film = unpacked(best)
         fitted_values = {name: value for name, value in (("coatings", tints), ("lights", gain)) if name in params}

@@ -81,6 +81,8 @@ def test_bad_fit_inputs_are_clear_errors(samples):
         fitting.fit(SCENE, plate, params=("coatings",), solver="adam", fixed=samples)
     with pytest.raises(ValueError, match="max_steps must be an integer of at least 1, got 0"):
         fitting.fit(SCENE, plate, params=("coatings",), max_steps=0, fixed=samples)
+    with pytest.raises(ValueError, match="progress must be a callable progress\\(step, loss\\) or None, got True"):
+        fitting.fit(SCENE, plate, params=("coatings",), progress=True, fixed=samples)
     small = fitting.Plate(rgb=plate.rgb[:10], weight=plate.weight[:10], source="small.exr", layer="")
     with pytest.raises(ValueError, match=r"small.exr: 64 x 10 pixels, but the scene renders 64 x 48"):
         fitting.fit(SCENE, small, fixed=samples)
