@@ -48,9 +48,11 @@ class FixedSamples(eqx.Module):
 
 def _fit_scene(scene):
     """The scene as a fit samples it: no culling, since a fit may brighten any path (tints up to
-    :data:`fitting._fit.TINT_MAX`), so every path keeps its samples."""
+    :data:`fitting._fit.TINT_MAX`), so every path keeps its samples; and no core (the lights' own
+    image, which a plate's flare layer does not hold and no fitted parameter changes), so no sample
+    and no path system is spent on it."""
     scene = load_scene(scene) if isinstance(scene, (str, bytes)) or hasattr(scene, "__fspath__") else scene
-    return dataclasses.replace(scene, render=dataclasses.replace(scene.render, cull_threshold=0.0))
+    return dataclasses.replace(scene, render=dataclasses.replace(scene.render, cull_threshold=0.0, core=False))
 
 
 _draw = eqx.filter_jit(batch_records)
@@ -286,20 +288,18 @@ def render_image(
     interface_tints: Float[Array, "I 3"],
     dirt: Float[Array, "H W C"] | None,
     light_gain: Float[Array, "NL 3"] | None = None,
-    *,
-    include_core: bool = False,
 ) -> Float[Array, "H W 3"]:
-    """The flare image (every flare together; with ``include_core`` also the lights' images) for
-    the given interface tints, dirt map (None: the scene's own, if it has one) and light gains
-    (scaling each RGB light's colour per channel, a spectral light's brightness by their mean),
-    in the renderer's pixel units."""
+    """The flare image (every flare together; the fit's samples have no core) for the given
+    interface tints, dirt map (None: the scene's own, if it has one) and light gains (scaling each
+    RGB light's colour per channel, a spectral light's brightness by their mean), in the
+    renderer's pixel units."""
     setup = samples.setup
     records = samples.records
     tints = path_tints(samples, interface_tints.astype(records.flux_factor.dtype))
     lights = setup.lights if light_gain is None else _gained_lights(setup.lights, light_gain)
     dirt = setup.effects.dirt if dirt is None else dirt
     values = record_values(records, lights, setup.spectral, setup.path_fresnel, tints, dirt, setup.front.radius_mm)
-    keep = records.hit & (samples.flare[records.path] | include_core)
+    keep = records.hit & samples.flare[records.path]
     width, height = samples.resolution
     buffer = jnp.zeros((1, height, width, 3), values.dtype)
     image = splat(buffer, jnp.zeros_like(records.path), records.column, records.row, values, keep)[0]

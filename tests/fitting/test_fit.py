@@ -6,6 +6,7 @@ import pytest
 import fitting
 import jaxflare as jf
 from fitting._forward import fixed_samples, render_image
+from tests.helpers import flare_only
 
 jax = pytest.importorskip("jax")
 jnp = jax.numpy
@@ -32,7 +33,7 @@ def synthetic_plate(samples, tints=TRUE_TINTS, dirt=None):
 
 def test_forward_model_reproduces_the_renderer(samples):
     image = render_image(samples, jnp.ones((10, 3)), None)
-    render = jf.render(SCENE, samples=2**14, seed=1)
+    render = jf.render(flare_only(SCENE), samples=2**14, seed=1)  # the fit's samples have no core
     # the renderer then maps each layer's colours outside the gamut into it, which keeps every
     # pixel's luminance (jaxflare.rendering.clip_to_gamut) but not its channels
     weights = np.asarray(jf.colour.spectral_table(render.statistics["settings"]["colour_space"]).luminance_weights)
@@ -93,7 +94,7 @@ def test_fitted_parameters_round_trip_into_the_renderer(samples, tmp_path):
     result = fitting.fit(SCENE, plate, params=("coatings", "lights"), fixed=samples, tint_prior_weight=1e-10, max_steps=100)
     path = fitting.save_fit(result, tmp_path / "fitted.json")
     refit = fitting.apply_fit(SCENE, path)
-    rendered = jf.render(refit, samples=2**14, seed=1)
+    rendered = jf.render(flare_only(refit), samples=2**14, seed=1)  # the fit's samples have no core
     # luminance: the renderer maps each layer into the gamut, keeping its luminance where positive
     # (a tinted single-wavelength colour can have a negative one: black), the fit's model does not
     weights = np.asarray(jf.colour.spectral_table(rendered.statistics["settings"]["colour_space"]).luminance_weights)
