@@ -29,7 +29,6 @@ import math
 
 import numpy as np
 
-from ..optics import inside_iris
 from ._grid_splat import LEVELS, SUB_NODE_CHOICES
 from ._grid_trace import MARGIN, NUM_QUANTITIES, SENSOR, STOP, VALID
 
@@ -61,6 +60,17 @@ def iris_half_planes(lens) -> tuple[np.ndarray, float]:
         return np.stack([np.cos(angles), np.sin(angles)], axis=-1), radius
     angles = float(lens.aperture_rotation_rad) + (np.arange(blades) + 0.5) * 2 * np.pi / blades
     return np.stack([np.cos(angles), np.sin(angles)], axis=-1), radius * math.cos(math.pi / blades)
+
+
+def passes_iris(x: np.ndarray, y: np.ndarray, lens) -> np.ndarray:
+    """The iris test of :func:`jaxflare.optics.inside_iris` on host arrays (stop-plane mm): NumPy,
+    since the host summarises grids of a new shape for every job (the JAX test dispatched and
+    compiled per shape: 4.8 s of a fresh process's demo render)."""
+    if lens.aperture_blades == 0:
+        radius = float(lens.stop_radius_mm)
+        return x * x + y * y <= radius * radius
+    normals, apothem = iris_half_planes(lens)
+    return np.all(x[..., None] * normals[:, 0] + y[..., None] * normals[:, 1] <= apothem, axis=-1)
 
 
 @dataclasses.dataclass
@@ -125,7 +135,7 @@ def summarise_cells(job, rows: np.ndarray, traced: int, lens, pitch_mm: float, w
     passing = valid & (base[..., MARGIN] > 0)
     for p in range(job.passes):
         x, y = base[..., STOP + 2 * p], base[..., STOP + 2 * p + 1]
-        passing &= np.asarray(inside_iris(x, y, float(lens.stop_radius_mm), lens.aperture_blades, float(lens.aperture_rotation_rad)))
+        passing &= passes_iris(x, y, lens)
     moving = float(motion_px[passing].max()) if passing.any() else 0.0
 
     middle = sensor_px[0, traced // 2]
