@@ -46,7 +46,8 @@ from ._grid_splat import (
     SPLAT_SUBSAMPLES,
     SUB_NODE_CHOICES,
     SUB_NODE_OFFSETS,
-    SUBSAMPLE_CHUNK,
+    TILE,
+    TILES_PER_CHUNK,
     JobTable,
     RecordTable,
     chunk_count,
@@ -325,17 +326,25 @@ def job_records(jobs: list[GridJob], pieces: list[dict], traced_nodes: np.ndarra
 
 
 def record_table(rows: jax.Array, records: dict) -> tuple[RecordTable, int, np.ndarray]:
-    """The device record table (padded to a bucketed size, and by a chunk for the kernel's
-    windows), the number of sub-samples and the record each chunk of sub-samples starts in."""
+    """The device record table (records and their tiles of :data:`TILE` sub-samples, each padded to
+    a bucketed size, the tiles by a chunk for the kernel's windows), the number of sub-samples and
+    the tile each chunk starts at."""
     count = records["count"]
     total = int(count.sum())
-    size = _bucket(max(len(count), MIN_RECORDS)) + SUBSAMPLE_CHUNK
+    size = _bucket(max(len(count), MIN_RECORDS))
     pad = size - len(count)
 
     def padded(a, value=0):
         return np.concatenate([a, np.full((pad,) + a.shape[1:], value, a.dtype)]) if pad else a
 
     end = np.cumsum(count)
+    tiles_per_record = -(-count // TILE)
+    tiles = int(tiles_per_record.sum())
+    tile_record = np.repeat(np.arange(len(count)), tiles_per_record)
+    tile_local = (np.arange(tiles) - np.repeat(np.cumsum(tiles_per_record) - tiles_per_record, tiles_per_record)) * TILE
+    tile_size = _bucket(max(tiles, MIN_RECORDS)) + TILES_PER_CHUNK
+    tile_record = np.concatenate([tile_record, np.zeros(tile_size - tiles, tile_record.dtype)])
+    tile_local = np.concatenate([tile_local, np.full(tile_size - tiles, np.iinfo(np.int32).max - TILE)])  # past every record's end
     end = padded(end, total)
     values = RECORD_VALUES(rows, jnp.asarray(padded(records["corners"])), jnp.asarray(padded(records["bracket"]), jnp.float32), jnp.asarray(padded(records["step"]), jnp.float32))
     table = RecordTable(
@@ -347,9 +356,10 @@ def record_table(rows: jax.Array, records: dict) -> tuple[RecordTable, int, np.n
         side=jnp.asarray(padded(records["side"], 1), jnp.int32),
         mixed=jnp.asarray(padded(records["mixed"], False)),
         end=jnp.asarray(end, jnp.int32),
+        tile_record=jnp.asarray(tile_record, jnp.int32),
+        tile_local=jnp.asarray(tile_local, jnp.int32),
     )
-    starts = np.arange(chunk_count(total)) * SUBSAMPLE_CHUNK
-    first = np.searchsorted(np.cumsum(count), starts, side="right")
+    first = np.arange(chunk_count(tiles)) * TILES_PER_CHUNK
     return table, total, first
 
 

@@ -42,8 +42,13 @@ LINEAR = 9
 """Quantities that move with the point on the light (sensor x, y, stop x, y of three passes, margin)."""
 RECORD = 4 * NUM_QUANTITIES + 2 * LINEAR
 """Floats per record: four corners, then the derivatives along the light's two axes."""
+TILE = 16
+"""Sub-samples per tile: a record's sub-samples are drawn in tiles of consecutive lattice points,
+which read the record's corners, its job and its colour once (measured on the demo at 720p: the
+per-sub-sample reads had cost more than the arithmetic)."""
 SUBSAMPLE_CHUNK = 2**15
-"""Sub-samples per step of the splat loop."""
+"""Sub-samples per step of the splat loop (tile slots, some of them empty)."""
+TILES_PER_CHUNK = SUBSAMPLE_CHUNK // TILE
 LEVELS = (1, 2, 4, 8, 16)
 """Image levels a path can be drawn at (pixels per level pixel along each axis)."""
 SUB_NODE_CHOICES = (1, 2, 4, 5, 8, 10, 16, 20, 32)
@@ -119,6 +124,10 @@ class RecordTable(eqx.Module):
     mixed: Array
     end: Int[Array, " R"]
     """Cumulative sub-sample count (exclusive end of each record's sub-samples)."""
+    tile_record: Int[Array, " T"]
+    """The record of each tile of :data:`TILE` sub-samples (padding tiles: any record)."""
+    tile_local: Int[Array, " T"]
+    """The index in its record of each tile's first sub-sample (padding tiles: past every record's end)."""
 
 
 # --------------------------------------------------------------------------- records
@@ -151,6 +160,14 @@ RECORD_VALUES = eqx.filter_jit(record_values)
 # --------------------------------------------------------------------------- sub-samples
 
 
+def _runtime_one(count: Array) -> Array:
+    """1.0 known only at run time: dividing by it keeps a value in memory instead of letting XLA
+    recompute its chain of cheap operations in every consumer (REFERENCE.md section 8)."""
+    c = jax.lax.stop_gradient(count).astype(jnp.float32)
+    c = jnp.where(c > 0, c, 1.0)
+    return c / c
+
+
 def _kronecker(index: Array) -> tuple[Array, Array]:
     """The R2 point of each integer index, exact in 32-bit arithmetic (fractions in [0, 1))."""
     index = index.astype(jnp.uint32)
@@ -161,84 +178,98 @@ def _kronecker(index: Array) -> tuple[Array, Array]:
     return (index * a + half).astype(jnp.float32) * scale, (index * b + half).astype(jnp.float32) * scale
 
 
-def chunk_records(records: RecordTable, first: Array, start: Array, count: int) -> Array:
-    """The record of each of ``count`` consecutive sub-samples from ``start``: ``first`` is the
-    record holding sub-sample ``start`` (the records' ends are sorted, so a chunk's records are
-    the ``count`` records from ``first`` on at most)."""
-    ends = jax.lax.dynamic_slice_in_dim(records.end, first, count) - start
-    marks = jnp.zeros(count + 1, jnp.int32).at[jnp.clip(ends, 0, count)].add(1)
-    return first + jnp.cumsum(marks[:count])
-
-
-def subsample_values(setup, jobs: JobTable, records: RecordTable, total: Array, start: Array, first: Array, count: int):
-    """``count`` sub-samples from global index ``start`` (``first``: the record holding it): their
-    layer, level, image position, RGB value (zero where they miss), hit mask, statistics slot,
-    entrance weight where they hit, and the value unclipped by the iris and clear apertures."""
-    index = start + jnp.arange(count, dtype=jnp.int32)
-    r = jnp.clip(chunk_records(records, first, start, count), 0, records.end.shape[0] - 1)
-    used = index < total
+def tile_lattice(records: RecordTable, start_tile: Array, num_tiles: int):
+    """The ``num_tiles`` tiles from ``start_tile``: each tile's record (T,) and its sub-samples'
+    index in their record (T, :data:`TILE`), and which of them exist (a record's last tile may be
+    part-filled; padding tiles hold none)."""
+    t = start_tile + jnp.arange(num_tiles, dtype=jnp.int32)
+    r = jnp.clip(records.tile_record[t], 0, records.end.shape[0] - 1)
+    local = records.tile_local[t][:, None] + jnp.arange(TILE, dtype=jnp.int32)[None, :]
     side = records.side[r]
-    local = index - (records.end[r] - side * side)
+    return r, local, local < (side * side)[:, None]
+
+
+def subsample_values(setup, jobs: JobTable, records: RecordTable, total: Array, start_tile: Array, num_tiles: int):
+    """The sub-samples of ``num_tiles`` tiles from ``start_tile`` (``num_tiles * TILE`` of them,
+    flat, in tile order): their layer, level, image position, RGB value (zero where they miss),
+    hit mask, statistics slot, entrance weight where they hit, and the value unclipped by the iris
+    and clear apertures. What a record or a job holds is read once per tile and shared by its
+    sub-samples; ``total`` (the sub-sample count) only feeds the run-time one that keeps shared
+    values in memory."""
+    r, local, used = tile_lattice(records, start_tile, num_tiles)
+    one = _runtime_one(total)
+
+    def keep(x):  # a value used many times: computed once, kept in memory
+        return x / one
+
+    side = records.side[r]
+    index = (records.end[r] - side * side)[:, None] + local  # the sub-sample's global index
     sub_node, sub_nodes = records.sub_node[r], records.sub_nodes[r]
     job = records.job[r]
     # each sub-node's lattice is shifted by its own Kronecker point (interleaved: their union is finer)
     shift_a, shift_b = _kronecker(jnp.where(jobs.interleave[job] > 0, sub_node, 0))  # index 0: the centred lattice
     mixed = records.mixed[r]
     piece = records.piece[r]
-    a = piece[:, 0] + piece[:, 2] * (local % side + jnp.where(mixed, 0.5, shift_a)) / side
-    b = piece[:, 1] + piece[:, 2] * (local // side + jnp.where(mixed, 0.5, shift_b)) / side
-    wa = jnp.where(mixed, jnp.round(a), a)
-    wb = jnp.where(mixed, jnp.round(b), b)
+    sidef = side.astype(jnp.float32)[:, None]
+    a = piece[:, :1] + piece[:, 2:3] * (local % side[:, None] + jnp.where(mixed, 0.5, shift_a)[:, None]) / sidef
+    b = piece[:, 1:2] + piece[:, 2:3] * (local // side[:, None] + jnp.where(mixed, 0.5, shift_b)[:, None]) / sidef
+    wa = jnp.where(mixed[:, None], jnp.round(a), a)
+    wb = jnp.where(mixed[:, None], jnp.round(b), b)
     values = records.values[r]
-    corners = values[:, : 4 * NUM_QUANTITIES].reshape(count, 4, NUM_QUANTITIES)
-    weights = jnp.stack([(1 - wa) * (1 - wb), wa * (1 - wb), (1 - wa) * wb, wa * wb], axis=-1)
-    q = jnp.einsum("sk,skq->sq", weights, corners)
+    corners = values[:, : 4 * NUM_QUANTITIES].reshape(num_tiles, 4, NUM_QUANTITIES)
+    weights = jnp.stack([(1 - wa) * (1 - wb), wa * (1 - wb), (1 - wa) * wb, wa * wb], axis=-1)  # (T, TILE, 4)
+    q = keep(jnp.einsum("tsk,tkq->tsq", weights, corners))
 
     # the sub-sample's point on the light: a Kronecker point of the node's stratum
     k1, k2 = _kronecker(index)
-    inner, outer, angle0, span = (jobs.stratum[job, k] for k in range(4))
+    inner, outer, angle0, span = (jobs.stratum[job, k][:, None] for k in range(4))
     rho = jnp.sqrt(inner**2 + k1 * (outer**2 - inner**2))
     phi = angle0 + k2 * span
-    offset = jnp.stack([rho * jnp.cos(phi), rho * jnp.sin(phi)], axis=-1) - jobs.node[job]
-    offset = jnp.where((jobs.step[job] > 0)[:, None], offset, 0.0)
-    move_s = values[:, 4 * NUM_QUANTITIES : 4 * NUM_QUANTITIES + LINEAR]
-    move_t = values[:, 4 * NUM_QUANTITIES + LINEAR :]
-    moved = q[:, :LINEAR] + offset[:, :1] * move_s + offset[:, 1:] * move_t
+    node = jobs.node[job]
+    offset_s = jnp.where((jobs.step[job] > 0)[:, None], rho * jnp.cos(phi) - node[:, :1], 0.0)
+    offset_t = jnp.where((jobs.step[job] > 0)[:, None], rho * jnp.sin(phi) - node[:, 1:], 0.0)
+    move_s = values[:, None, 4 * NUM_QUANTITIES : 4 * NUM_QUANTITIES + LINEAR]
+    move_t = values[:, None, 4 * NUM_QUANTITIES + LINEAR :]
+    moved = keep(q[..., :LINEAR] + offset_s[..., None] * move_s + offset_t[..., None] * move_t)
 
     lens = setup.lens
-    passes = jobs.passes[job]
-    inside = jnp.ones(count, bool)
+    passes = jobs.passes[job][:, None]
+    inside = jnp.ones(local.shape, bool)
     for p in range(MAX_STOP_PASSES):
-        x, y = moved[:, STOP + 2 * p], moved[:, STOP + 2 * p + 1]
+        x, y = moved[..., STOP + 2 * p], moved[..., STOP + 2 * p + 1]
         through = inside_iris(x, y, lens.stop_radius_mm, lens.aperture_blades, lens.aperture_rotation_rad)
         inside = inside & (through | (p >= passes))
-    valid = (q[:, VALID] > 0.999) & (moved[:, MARGIN] > 0) & inside
+    valid = (q[..., VALID] > 0.999) & (moved[..., MARGIN] > 0) & inside
 
     effects = setup.effects
-    factor = q[:, FLUX] * q[:, COS] * q[:, VISIBLE]
+    factor = q[..., FLUX] * q[..., COS] * q[..., VISIBLE]
     if effects.hood is not None:
-        factor = factor * jnp.where(hood_inside(effects.hood, q[:, HOOD : HOOD + 2]), 1.0, 0.0)
+        factor = factor * jnp.where(hood_inside(effects.hood, q[..., HOOD : HOOD + 2].reshape(-1, 2)).reshape(local.shape), 1.0, 0.0)
     if not setup.schlick:
-        factor = factor * q[:, THROUGHPUT]
+        factor = factor * q[..., THROUGHPUT]
     domain = jobs.domain[job]
     area = domain[:, 2] * domain[:, 3] * piece[:, 2] ** 2 / jnp.pi
-    share = area / (side * side).astype(jnp.float32) * jobs.weight[job] / sub_nodes.astype(jnp.float32)
+    share = area / (side * side).astype(jnp.float32) * jobs.weight[job] / sub_nodes.astype(jnp.float32)  # per tile
     path = jobs.path[job]
     offset = jnp.asarray(np.asarray([SUB_NODE_OFFSETS.get(m, 0) for m in range(max(SUB_NODE_OFFSETS) + 1)], np.int32))[sub_nodes]
-    colour = jobs.colour[job, offset + sub_node]
-    value = colour * (factor * share)[:, None] * setup.path_tint[path]
+    colour = jobs.colour[job, offset + sub_node] * setup.path_tint[path]  # (T, 3)
+    value = keep(colour[:, None, :] * (factor * share[:, None])[..., None])
+    flat = num_tiles * TILE
+    value = value.reshape(flat, 3)
     if effects.dirt is not None:
-        value = value * dirt_transmission(effects.dirt, q[:, FRONT : FRONT + 2], setup.front.radius_mm)
+        value = value * dirt_transmission(effects.dirt, q[..., FRONT : FRONT + 2].reshape(flat, 2), setup.front.radius_mm)
 
-    column, row = image_position(setup, moved[:, SENSOR : SENSOR + 2])
+    column, row = image_position(setup, moved[..., SENSOR : SENSOR + 2].reshape(flat, 2))
     width, height = setup.resolution
     on_sensor = (column >= 0) & (column < width) & (row >= 0) & (row < height)
-    reaches = used & on_sensor & setup.path_enabled[path]
-    hit = reaches & valid
+    reaches = used.reshape(flat) & on_sensor & jnp.repeat(setup.path_enabled[path], TILE)
+    hit = reaches & valid.reshape(flat)
     # what the cell could carry at most: clipped by nothing but the image (the culling bound)
-    unclipped = jnp.where((reaches & (q[:, VALID] > 0.999))[:, None], value, 0.0)
+    unclipped = jnp.where((reaches & (q[..., VALID] > 0.999).reshape(flat))[:, None], value, 0.0)
     value = jnp.where(hit[:, None], value, 0.0)
-    return jobs.layer[job], jobs.level[job], column, row, value, hit, jobs.slot[job], jnp.where(hit, share, 0.0), unclipped
+    per_sample = lambda x: jnp.repeat(x, TILE)  # noqa: E731
+    share = jnp.where(hit, per_sample(share), 0.0)
+    return per_sample(jobs.layer[job]), per_sample(jobs.level[job]), column, row, value, hit, per_sample(jobs.slot[job]), share, unclipped
 
 
 def _level_position(level: Array, column: Array, row: Array, width: int, height: int):
@@ -267,14 +298,14 @@ class GridAccumulators(eqx.Module):
 def splat_subsamples(
     setup, jobs: JobTable, records: RecordTable, acc: GridAccumulators, total: Array, chunk_first: Array, chunks: Array
 ) -> GridAccumulators:
-    """Every sub-sample of the records, in ``chunks`` chunks of :data:`SUBSAMPLE_CHUNK` (chunk
-    ``c`` starts in record ``chunk_first[c]``), splatted into the packed level images (a loop: one
+    """Every sub-sample of the records, in ``chunks`` chunks of :data:`TILES_PER_CHUNK` tiles (chunk
+    ``c`` starts at tile ``chunk_first[c]``), splatted into the packed level images (a loop: one
     compilation per render structure)."""
     width, height = setup.resolution
 
     def body(c, acc):
         layer, level, column, row, value, hit, slot, share, unclipped = subsample_values(
-            setup, jobs, records, total, c * SUBSAMPLE_CHUNK, chunk_first[c], SUBSAMPLE_CHUNK
+            setup, jobs, records, total, chunk_first[c], TILES_PER_CHUNK
         )
         x, y = _level_position(level, column, row, width, height)
         return GridAccumulators(
@@ -329,5 +360,6 @@ def empty_grid_accumulators(num_layers: int, num_paths: int, width: int, height:
     )
 
 
-def chunk_count(total: int) -> int:
-    return max(1, math.ceil(total / SUBSAMPLE_CHUNK))
+def chunk_count(tiles: int) -> int:
+    """Chunks of the splat loop for ``tiles`` tiles."""
+    return max(1, math.ceil(tiles / TILES_PER_CHUNK))
