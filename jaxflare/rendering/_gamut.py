@@ -21,15 +21,18 @@ def clip_to_gamut(rgb: np.ndarray, luminance_weights: np.ndarray) -> np.ndarray:
     """``rgb`` (..., 3) with every pixel that has a negative channel desaturated towards the grey
     of its own luminance just enough that its lowest channel is 0; pixels of luminance <= 0 become
     0. Pixels without a negative channel are unchanged (float64 result)."""
-    rgb = np.asarray(rgb, np.float64)
-    luminance = rgb @ np.asarray(luminance_weights, np.float64)
-    lowest = rgb.min(axis=-1)
-    negative = lowest < 0
-    movable = negative & (luminance > 0)  # then luminance - lowest > 0
+    rgb = np.array(rgb, np.float64)  # a copy: only the pixels outside the gamut are rewritten
+    negative = rgb.min(axis=-1) < 0
+    if not negative.any():
+        return rgb
+    outside = rgb[negative]  # (K, 3): usually a small part of the layer
+    luminance = outside @ np.asarray(luminance_weights, np.float64)
+    lowest = outside.min(axis=-1)
+    movable = luminance > 0  # then luminance - lowest > 0
     scale = np.where(movable, luminance / np.where(movable, luminance - lowest, 1.0), 1.0)
-    mapped = luminance[..., None] + scale[..., None] * (rgb - luminance[..., None])
-    mapped = np.where((negative & (luminance <= 0))[..., None], 0.0, np.maximum(mapped, 0.0))
-    return np.where(negative[..., None], mapped, rgb)
+    mapped = luminance[:, None] + scale[:, None] * (outside - luminance[:, None])
+    rgb[negative] = np.where(movable[:, None], np.maximum(mapped, 0.0), 0.0)
+    return rgb
 
 
 def gamut_clipped_fraction(rgb: np.ndarray) -> float:
