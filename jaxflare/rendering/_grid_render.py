@@ -9,6 +9,7 @@ outside the output gamut are mapped as for Monte Carlo (:mod:`._gamut`).
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 
@@ -28,7 +29,7 @@ def render_grid(scene, quality: str | None = None, seed: int = 0, *, paths=None,
     started = time.perf_counter()
     prepared = prepare_grid(plan)
     layers, acc = grid_layers(plan.setup, plan, prepared)
-    layers = np.asarray(layers, np.float64)
+    layers = np.asarray(layers)
     now = time.perf_counter()
     inner = prepared.prepared
     path_samples = inner.slot_samples if inner is not None else np.zeros(len(plan.paths))
@@ -43,10 +44,9 @@ def grid_result(plan: GridPlan, layers: np.ndarray, acc, path_samples: np.ndarra
     width, height = plan.scene.camera.resolution
     to_radiance = radiance_scale(lens, pitch)
 
-    scaled = layers * to_radiance
-    if not np.all(np.isfinite(scaled)):
+    if not (np.all(np.isfinite(layers)) and math.isfinite(to_radiance)):
         raise FloatingPointError("the grid render produced non-finite pixels; please report this scene")
-    mapped, out_of_gamut = gamut_mapped(plan, scaled)
+    mapped, out_of_gamut = gamut_mapped(plan, layers, np.full(len(layers), to_radiance))
     out, layer_info = named_layers(plan, mapped)
     out["variance"] = np.zeros((height, width, 1), np.float32)
     layer_info.append({"layer": "variance", "paths": [], "meaning": "grid estimator: deterministic, no sampling variance (zero)", "clipped_values": 0})
