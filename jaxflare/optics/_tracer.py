@@ -72,6 +72,33 @@ class ExactPathTracer(AbstractPathTracer):
         longest = max(active_event_count(table) for table in tables)
         return cls(lens, EventTable.from_array(tables[:, :longest]), num_stop_passes, fresnel)
 
+    @classmethod
+    def joined(cls, tracers: Sequence[ExactPathTracer]) -> ExactPathTracer:
+        """One tracer holding the paths of ``tracers`` in order (the first one's paths, then the
+        second's, ...), so that rays of all of them are traced by one call: one tracer in a
+        compiled program instead of one per set. The tracers must trace one lens (this one takes
+        the first's) with one Fresnel model; event tables are padded to the longest with inactive
+        events, and the fewest stop crossings any of them records are kept."""
+        tracers = tuple(tracers)
+        if not tracers:
+            raise ValueError("joined: needs at least one tracer")
+        if len({t.fresnel for t in tracers}) != 1:
+            raise ValueError("joined: the tracers use different Fresnel models (fresnel=True and False)")
+        if len({jax.tree.structure(t.lens) for t in tracers}) != 1:
+            raise ValueError("joined: the tracers trace lenses of different structure")
+        longest = max(int(t.events.surface.shape[1]) for t in tracers)
+        padding = {"surface": 0, "travel": 1, "action": 0, "active": 0}  # as path_events pads
+
+        def column(name):
+            parts = []
+            for t in tracers:
+                values = getattr(t.events, name)
+                parts.append(jnp.pad(values, ((0, 0), (0, longest - values.shape[1])), constant_values=padding[name]))
+            return jnp.concatenate(parts)
+
+        events = EventTable(**{name: column(name) for name in padding})
+        return cls(tracers[0].lens, events, min(t.num_stop_passes for t in tracers), tracers[0].fresnel)
+
     @property
     def num_paths(self) -> int:
         return int(self.events.surface.shape[0])

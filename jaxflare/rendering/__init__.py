@@ -10,7 +10,8 @@ equation (2), splat) and returns a :class:`RenderResult` with typed :class:`Rend
 - Lights and sampling: :func:`light_arrays`, :func:`sample_connections`, adaptive tables
   (:class:`SamplingTable`).
 - Path sets (:class:`AbstractPathSet`): :class:`AdaptivePathSet` (exact tracing, adaptive
-  sampling) and :class:`UniformPathSet` (polynomial path systems), each with its own tracer.
+  sampling) and :class:`UniformPathSet` (polynomial path systems), each with its own tracer; adaptive sets of one trace group are
+  connected, traced and recorded together (:func:`group_records`).
 - Samples and pixels: :class:`SampleRecords`, :func:`record_values` (equation (2)), :func:`splat`.
 - Effects (:mod:`jaxflare.rendering.effects`): dirt, hood, occluding geometry, distortion.
 """
@@ -22,7 +23,7 @@ from ._grid_plan import GridPlan, PreparedGrid, grid_layers, plan_grid, prepare_
 from ._gamut import clip_to_gamut
 from ._grid_render import grid_result, render_grid
 from ._lights import LightArrays, light_arrays, light_rgb
-from ._path_sets import AbstractPathSet, AdaptivePathSet, UniformPathSet
+from ._path_sets import AbstractPathSet, AdaptivePathSet, UniformPathSet, group_records, trace_groups
 from ._plan import (
     PILOT_STREAM,
     RENDER_STREAM,
@@ -87,6 +88,8 @@ __all__ = [
     "AbstractPathSet",
     "Accumulators",
     "AdaptivePathSet",
+    "group_records",
+    "trace_groups",
     "BrownConrady",
     "Connections",
     "CullingPlan",

@@ -229,7 +229,8 @@ def exact_path_sets(
     lens: Lens, paths, exact_index: Sequence[int], lights: LightArrays, rays_per_path: int, fresnel: bool,
 ) -> list[AdaptivePathSet]:
     """The exactly traced paths as adaptive sets: the flares in one, the core (primary path) in
-    its own, so the core's brightness does not take the flares' samples. ``fresnel``: trace the
+    its own, so the core's brightness does not take the flares' samples; both are traced by one
+    call in the render step (one trace group). ``fresnel``: trace the
     coated Fresnel factor of every event (the exact Fresnel model; the Schlick model uses the
     paths' on-axis factors instead)."""
     sets = []
@@ -238,7 +239,9 @@ def exact_path_sets(
             continue
         tracer = ExactPathTracer.for_paths(lens, [paths[k] for k in members], 1, fresnel=fresnel)
         table = uniform_table(lights.kind.shape[0], len(members), light_probability=np.asarray(lights.selection_probability))
-        sets.append(AdaptivePathSet(jnp.asarray(members, jnp.int32), tracer, table, rays_per_path * len(members), stream=1000 + len(sets)))
+        sets.append(
+            AdaptivePathSet(jnp.asarray(members, jnp.int32), tracer, table, rays_per_path * len(members), stream=1000 + len(sets), joint_trace_group=0)
+        )
     return sets
 
 
