@@ -56,7 +56,7 @@ def test_dirt_map_is_recovered_where_light_passes_and_stays_at_its_prior_elsewhe
     truth = np.ones((8, 8, 1))
     truth[2:5, 3:6] = 0.3
     plate = synthetic_plate(samples, tints=np.ones((10, 3)), dirt=truth)
-    result = fitting.fit(SCENE, plate, params=("dirt",), solver="levenberg-marquardt", fixed=samples, dirt_resolution=8, dirt_prior_weight=1e-6, max_steps=100)
+    result = fitting.fit(SCENE, plate, params=("dirt",), solver="levenberg-marquardt", fixed=samples, dirt_resolution=8, dirt_prior_weight=1e-6, max_steps=30)
     assert result.loss_history[-1] < 1e-2 * result.loss_history[0]  # what is left is mostly the weak prior
     # cells the flare never lights keep the prior (clean); lit cells take the true value
     sensitivity = np.asarray(jax.grad(lambda d: render_image(samples, jnp.ones((10, 3)), d).sum())(jnp.ones((8, 8, 1), jnp.float32)))
@@ -91,7 +91,11 @@ def test_bad_fit_inputs_are_clear_errors(samples):
 
 def test_fitted_parameters_round_trip_into_the_renderer(samples, tmp_path):
     plate = synthetic_plate(samples)
-    result = fitting.fit(SCENE, plate, params=("coatings", "lights"), fixed=samples, tint_prior_weight=1e-10, max_steps=100)
+    # tints and light gains trade off (a common scale): the fit creeps on for its 100 steps, but
+    # by 40 the loss is below 1e-5 of its start, as close as the round trip needs (the
+    # renderer maps colours outside the gamut, so the parameters must be near the truth)
+    result = fitting.fit(SCENE, plate, params=("coatings", "lights"), fixed=samples, tint_prior_weight=1e-10, max_steps=40)
+    assert result.loss_history[-1] < 1e-5 * result.loss_history[0]
     path = fitting.save_fit(result, tmp_path / "fitted.json")
     refit = fitting.apply_fit(SCENE, path)
     rendered = jf.render(flare_only(refit), samples=2**14, seed=1)  # the fit's samples have no core
