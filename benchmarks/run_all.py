@@ -2,7 +2,8 @@
 
 Usage:  python benchmarks/run_all.py [--quick] [--only NAME ...] [--list] [-- extra args for every benchmark]
 
-Benchmarks (``--only`` takes the name with or without ``bench_``): ``fitting`` (plate-fitting solvers:
+Benchmarks (``--only`` takes the name with or without ``bench_``): ``compile`` (what a cold render
+spends compiling: render call, XLA compile seconds and kernels of the render step), ``fitting`` (plate-fitting solvers:
 recovered coatings and dirt against wall time on synthetic plates), ``plate_fits`` (the table of
 grid-model fits on a Zemax double Gauss the tests do not fit: coatings, thin film, coatings + dirt
 from three plates), ``polynomial`` (path-system error
