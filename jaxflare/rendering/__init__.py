@@ -10,8 +10,9 @@ equation (2), splat) and returns a :class:`RenderResult` with typed :class:`Rend
 - Lights and sampling: :func:`light_arrays`, :func:`sample_connections`, adaptive tables
   (:class:`SamplingTable`).
 - Path sets (:class:`AbstractPathSet`): :class:`AdaptivePathSet` (exact tracing, adaptive
-  sampling) and :class:`UniformPathSet` (polynomial path systems), each with its own tracer; adaptive sets of one trace group are
-  connected, traced and recorded together (:func:`group_records`).
+  sampling) and :class:`UniformPathSet` (polynomial path systems), each with its own tracer;
+  adaptive sets of one trace group are connected, traced and recorded together
+  (:func:`group_records`).
 - Samples and pixels: :class:`SampleRecords`, :func:`record_values` (equation (2)), :func:`splat`.
 - Effects (:mod:`jaxflare.rendering.effects`): dirt, hood, occluding geometry, distortion.
 """

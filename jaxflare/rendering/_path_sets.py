@@ -118,7 +118,6 @@ class UniformPathSet(AbstractPathSet):
         return connections, slot, jnp.full(slot.shape, 1.0 / n, connections.flux.dtype), None
 
 
-
 def trace_groups(path_sets) -> list[list[int]]:
     """The sets' indices by trace group, in order of first appearance (a set without a group
     alone)."""
@@ -139,7 +138,7 @@ def group_records(setup, path_sets, key: Array) -> list[SampleRecords]:
     cells = [s.draw_cells(key) for s in path_sets]
     offsets = np.cumsum([0] + [s.tracer.num_paths for s in path_sets])[:-1]
     bounds = np.cumsum([0] + [s.samples for s in path_sets])
-    light, slot, unit, index, weight = (jnp.concatenate([c[k] for c in cells]) for k in range(5))
+    light, unit, index, weight = (jnp.concatenate([c[k] for c in cells]) for k in (0, 2, 3, 4))
     tracer_slot = jnp.concatenate([c[1] + int(offset) for c, offset in zip(cells, offsets)])
     path = jnp.concatenate([s.path_index[c[1]] for s, c in zip(path_sets, cells)])
     connections = sample_connections(
