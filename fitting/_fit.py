@@ -631,19 +631,20 @@ def _solve(residuals, free, solver: str, rtol: float, atol: float, max_steps: in
     """Solve with optimistix (``optx.least_squares``, or ``optx.minimise`` for BFGS), wrapped in its
     best-so-far solver, so the parameters returned are the best seen even when the solver stops
     early or a step goes astray. The solver's own verbose hook reports each step's loss, which
-    feeds ``progress`` and the loss history (the best loss after each step, the start first)."""
+    feeds ``progress`` and the loss history (the best loss after each step, the start first).
+    Each step reports the loss at the point it evaluates, and the first step evaluates the start:
+    the start's loss comes from there, not from a separate compilation of the model."""
     losses: list[float] = []
 
     def report(**fields):
         def record(loss):
             losses.append(float(loss))
             if progress is not None:
-                progress(len(losses), min([initial] + losses))
+                progress(len(losses), min(losses))
 
         jax.debug.callback(record, fields["loss_this_step"][1], ordered=True)
 
     chosen = _solver(solver, rtol, atol, verbose=report, dense=dense)
-    initial = float(eqx.filter_jit(lambda y: 0.5 * jnp.sum(residuals(y, None) ** 2))(free))
     if solver == "bfgs":
         solution = optx.minimise(
             lambda y, args: 0.5 * jnp.sum(residuals(y, args) ** 2), optx.BestSoFarMinimiser(chosen), free, max_steps=max_steps, throw=False
@@ -652,6 +653,7 @@ def _solve(residuals, free, solver: str, rtol: float, atol: float, max_steps: in
         solution = optx.least_squares(residuals, optx.BestSoFarLeastSquares(chosen), free, max_steps=max_steps, throw=False)
     result = solution.result
     steps = int(solution.stats["num_steps"])
+    initial = losses[0] if losses else float(0.5 * jnp.sum(residuals(free, None) ** 2))
     history = [initial]
     for loss in losses[:steps]:
         history.append(min(history[-1], loss) if math.isfinite(loss) else history[-1])
