@@ -1,6 +1,7 @@
 """Trace groups: the exact sets of a render (flares, core) are connected, traced and recorded by
 one call, and each ray comes out as its own set's tracer would have traced it."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -9,6 +10,11 @@ import pytest
 import jaxflare as jf
 from jaxflare.optics import ExactPathTracer
 from jaxflare.rendering import group_records, plan_render, trace_groups
+
+# compiled as a render step compiles them (run op by op, their scans and gathers compile one by one)
+jit_group_records = eqx.filter_jit(group_records)
+jit_set_records = eqx.filter_jit(lambda path_set, setup, key: path_set.records(setup, key))
+jit_draw_cells = eqx.filter_jit(lambda path_set, key: path_set.draw_cells(key))
 
 
 def test_a_joined_tracer_traces_each_ray_along_its_own_sets_path(biotar):
@@ -47,23 +53,23 @@ def test_the_flares_and_the_core_are_one_group_recorded_set_by_set():
     sets = plan.setup.path_sets
     assert trace_groups(sets) == [[0, 1]]
     key = plan.batch_key(0)
-    records = group_records(plan.setup, list(sets), key)
+    records = jit_group_records(plan.setup, list(sets), key)
     core_index = plan.paths.index(None)
     for path_set, record in zip(sets, records):
         assert record.path.shape == (path_set.samples,)
         assert set(np.unique(np.asarray(record.path))) <= set(np.asarray(path_set.path_index).tolist())
         index = np.asarray(record.table_index)
         assert index.min() >= 0 and index.max() < path_set.sampling_table.probability.shape[0]
-        _, _, _, drawn_index, weight, _ = path_set.draw_cells(key)  # each set keeps its own table's draw
+        _, _, _, drawn_index, weight, _ = jit_draw_cells(path_set, key)  # each set keeps its own table's draw
         np.testing.assert_array_equal(index, np.asarray(drawn_index))
         np.testing.assert_allclose(np.asarray(record.weight), np.asarray(weight))
     assert np.all(np.asarray(records[1].path) == core_index)
     # the core's rays get through as often as when the core set is traced on its own (other
     # random numbers: within five standard errors of the difference)
-    together, apart = np.asarray(records[1].hit).mean(), np.asarray(sets[1].records(plan.setup, key).hit).mean()
+    together, apart = np.asarray(records[1].hit).mean(), np.asarray(jit_set_records(sets[1], plan.setup, key).hit).mean()
     assert together > 0.05 and abs(together - apart) < 5 * np.sqrt(2 * apart * (1 - apart) / records[1].hit.shape[0])
     # a set alone is recorded exactly as the set records itself
-    alone = group_records(plan.setup, [sets[0]], key)[0]
-    direct = sets[0].records(plan.setup, key)
+    alone = jit_group_records(plan.setup, [sets[0]], key)[0]
+    direct = jit_set_records(sets[0], plan.setup, key)
     for a, b in zip(jax.tree.leaves(alone), jax.tree.leaves(direct)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
