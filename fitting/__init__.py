@@ -9,7 +9,9 @@ deterministic grid estimator (or its Monte Carlo renderer).
 
 from ._fit import (
     DEFAULT_SOLVER,
+    DIRT_MAX,
     DIRT_PRIOR,
+    DIRT_PRIOR_WEIGHTS,
     MODELS,
     OBSERVABLE_STD,
     PARAMETERS,
@@ -26,7 +28,9 @@ from ._plate import Plate, PlateQuantisationWarning, load_plate, save_plate
 
 __all__ = [
     "DEFAULT_SOLVER",
+    "DIRT_MAX",
     "DIRT_PRIOR",
+    "DIRT_PRIOR_WEIGHTS",
     "MODELS",
     "OBSERVABLE_STD",
     "PARAMETERS",
