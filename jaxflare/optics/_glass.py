@@ -12,8 +12,8 @@ Wavelengths are in nanometres at the API. The Fraunhofer lines used for n_d and 
 d = 587.56 nm, F = 486.13 nm and C = 656.27 nm (the catalog values 587.5618/486.1327/656.2725 nm
 rounded as the rest of the project writes them; the difference moves n by less than 1e-7).
 
-The data: ``jaxflare/data/glass_catalog.csv``
----------------------------------------------
+The data: ``jaxflare/optics/data/glass_catalog.csv``
+----------------------------------------------------
 
 One row per glass, columns ``catalog,name,B1,B2,B3,C1,C2,C3,n_d,v_d,status,source``:
 
