@@ -41,14 +41,6 @@ from .effects import scene_effects
 
 PILOT_STREAM, RENDER_STREAM = 1, 2
 """Random streams of the pilot's and the render's batches (see :meth:`RenderPlan.batch_key`)."""
-PILOT_SEED = 0
-"""The pilot draws its samples with this seed, whatever the render's: the plan (culling, layers,
-adaptive tables, each polynomial path's exact-fallback capacity) is then the same for every seed
-of a scene, so renders of one scene with other seeds (frames, noise estimates) reuse the compiled
-step. With the render's seed, a polynomial path whose untrusted fraction sat near a capacity step
-got another capacity, hence another program, per seed (measured: 5-6 s recompiling for the second
-seed of a 96 x 64 Biotar render). The pilot's samples never reach the image, so the renders of two
-seeds stay independent."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -146,9 +138,8 @@ class RenderPlan:
 
     def batch_key(self, batch: int, stream: int = RENDER_STREAM) -> jax.Array:
         """The random key of batch ``batch`` of the render (or, with ``stream=PILOT_STREAM``, of
-        the pilot, drawn with :data:`PILOT_SEED`): the one place the key schedule lives, so a fit
-        draws the render's samples."""
-        return batch_key(PILOT_SEED if stream == PILOT_STREAM else self.seed, stream, batch)
+        the pilot): the one place the key schedule lives, so a fit draws the render's samples."""
+        return batch_key(self.seed, stream, batch)
 
     @property
     def step(self):
@@ -431,7 +422,7 @@ def plan_render(
     compile_started = time.perf_counter()
     pilot = empty_accumulators(setup, num_layers)
     for b in range(pilot_batches):
-        pilot = step(setup, pilot, batch_key(PILOT_SEED, PILOT_STREAM, b))
+        pilot = step(setup, pilot, batch_key(seed, PILOT_STREAM, b))
         if b == 0:
             jax.block_until_ready(pilot.path_energy)
             compile_seconds = time.perf_counter() - compile_started
