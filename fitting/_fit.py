@@ -67,6 +67,7 @@ from ._grid_model import (
     grid_path_images,
 )
 from ._levenberg_marquardt import LevenbergMarquardt
+from ._physical_termination import GaussNewton
 from ._plate import Plate, check_fittable
 from ._thin_film import INDEX_PRIOR_WEIGHT, FilmLayers, air_side_stacks, equivalent_tints, film_arrays, film_layers, film_start_logits, film_values
 
@@ -260,14 +261,16 @@ Measured on a 64 x 48 thin-film fit of 8 layers: 1.6 s per step matrix-free (CG 
 of iterations on its ill-conditioned normal matrix)."""
 
 
-def _solver(name: str, rtol: float, atol: float, verbose=False, dense: bool = False):
+def _solver(name: str, rtol: float, atol: float, verbose=False, dense: bool = False, physical=None):
+    """The solver called ``name``; ``physical`` maps the free variables to the values ``rtol`` and
+    ``atol`` are judged on (Gauss-Newton family: :mod:`._physical_termination`)."""
     if name not in SOLVERS:
         raise ValueError(f"solver must be one of {', '.join(SOLVERS)}, got {name!r}")
     linear = lx.QR() if dense else lx.Normal(lx.CG(rtol=1e-6, atol=1e-9, max_steps=500))
     if name == "levenberg-marquardt":
-        return LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=linear, verbose=verbose)
+        return LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=linear, verbose=verbose, physical=physical)
     if name == "gauss-newton":
-        return optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=linear, verbose=verbose)
+        return GaussNewton(rtol=rtol, atol=atol, linear_solver=linear, verbose=verbose, physical=physical)
     return optx.BFGS(rtol=rtol, atol=atol, verbose=verbose)
 
 
@@ -476,7 +479,7 @@ def fit(
         # through per-cell image stacks the dirt is as linear and as cheap as the tints
         resplats = "dirt" in params and not all(isinstance(f, DirtImages) for f in forwards)
         dense = not resplats and num_free <= DENSE_PARAMETERS
-        best, history, steps, converged, status = _solve(residuals, free, solver, rtol, atol, max_steps, progress, dense=dense)
+        best, history, steps, converged, status = _solve(residuals, free, solver, rtol, atol, max_steps, progress, dense=dense, physical=unpacked)
         tints, dirt, gain, film = unpacked(best)
         fitted_values = {name: value for name, value in (("coatings", tints), ("lights", gain)) if name in params}
         prior_weights = {"coatings": tint_prior_weight}
@@ -655,7 +658,7 @@ def _final_image(built: _BuiltModel, forward, scene, tints, dirt, gain, film=Non
     return np.asarray(render_image(forward, jnp.asarray(tints), None if dirt is None else jnp.asarray(dirt), jnp.ones((_num_lights(forward), 3)) if gain is None else gain))
 
 
-def _solve(residuals, free, solver: str, rtol: float, atol: float, max_steps: int, progress, dense: bool = False):
+def _solve(residuals, free, solver: str, rtol: float, atol: float, max_steps: int, progress, dense: bool = False, physical=None):
     """Solve with optimistix (``optx.least_squares``, or ``optx.minimise`` for BFGS), wrapped in its
     best-so-far solver, so the parameters returned are the best seen even when the solver stops
     early or a step goes astray. The solver's own verbose hook reports each step's loss, which
@@ -672,7 +675,7 @@ def _solve(residuals, free, solver: str, rtol: float, atol: float, max_steps: in
 
         jax.debug.callback(record, fields["loss_this_step"][1], ordered=True)
 
-    chosen = _solver(solver, rtol, atol, verbose=report, dense=dense)
+    chosen = _solver(solver, rtol, atol, verbose=report, dense=dense, physical=physical)
     if solver == "bfgs":
         solution = optx.minimise(
             lambda y, args: 0.5 * jnp.sum(residuals(y, args) ** 2), optx.BestSoFarMinimiser(chosen), free, max_steps=max_steps, throw=False

@@ -24,6 +24,8 @@ from collections.abc import Callable
 import lineax as lx
 import optimistix as optx
 
+from ._physical_termination import identity, quiet, physical_step
+
 GOOD_RATIO = 0.75
 """A step whose actual decrease is at least this fraction of the predicted one widens the region."""
 POOR_RATIO = 0.1
@@ -36,7 +38,8 @@ NARROW = 0.25
 
 class LevenbergMarquardt(optx.AbstractGaussNewton):
     """Levenberg-Marquardt (:class:`optimistix.DampedNewtonDescent` in a
-    :class:`optimistix.ClassicalTrustRegion` with the thresholds above)."""
+    :class:`optimistix.ClassicalTrustRegion` with the thresholds above), converged when the
+    physical values ``physical(y)`` stop changing (:mod:`._physical_termination`)."""
 
     rtol: float
     atol: float
@@ -44,15 +47,17 @@ class LevenbergMarquardt(optx.AbstractGaussNewton):
     descent: optx.DampedNewtonDescent
     search: optx.ClassicalTrustRegion
     verbose: Callable
+    physical: Callable
 
-    def __init__(self, rtol: float, atol: float, linear_solver: lx.AbstractLinearSolver, verbose: Callable | None = None):
+    def __init__(
+        self, rtol: float, atol: float, linear_solver: lx.AbstractLinearSolver, verbose: Callable | None = None, physical: Callable | None = None
+    ):
         self.rtol = rtol
         self.atol = atol
         self.norm = optx.max_norm
         self.descent = optx.DampedNewtonDescent(linear_solver=linear_solver)
         self.search = optx.ClassicalTrustRegion(high_cutoff=GOOD_RATIO, low_cutoff=POOR_RATIO, high_constant=WIDEN, low_constant=NARROW)
-        self.verbose = verbose if callable(verbose) else _quiet
+        self.verbose = verbose if callable(verbose) else quiet
+        self.physical = identity if physical is None else physical
 
-
-def _quiet(**fields) -> None:
-    del fields
+    step = physical_step

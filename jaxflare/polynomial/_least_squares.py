@@ -5,6 +5,7 @@ weighted least squares; the constructions themselves are in :mod:`._construction
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -72,13 +73,15 @@ def _choose_clip_events(lens: Lens, events: np.ndarray, wide: TraceResult, max_c
     return tuple(chosen), tuple(int(events[r, 0]) for r in chosen)
 
 
-def _output_matrix(result: TraceResult, clip_rows: Sequence[int], clip_slots: int) -> Array:
+def _output_matrix(result: TraceResult, clip_positions: Array) -> Array:
+    """The fitted outputs per ray: sensor position and direction (x, y), each stop pass's position,
+    each clear-aperture slot's position (``clip_positions`` (S, N, 3): zeros in inactive slots),
+    throughput."""
     columns = [result.positions[:, 0], result.positions[:, 1], result.directions[:, 0], result.directions[:, 1]]
     for p in range(result.stop_positions.shape[1]):
         columns += [result.stop_positions[:, p, 0], result.stop_positions[:, p, 1]]
-    for r in clip_rows:
-        columns += [result.event_positions[r, :, 0], result.event_positions[r, :, 1]]
-    columns += [jnp.zeros_like(result.throughput)] * (2 * (clip_slots - len(clip_rows)))  # inactive slots
+    for slot in range(clip_positions.shape[0]):
+        columns += [clip_positions[slot, :, 0], clip_positions[slot, :, 1]]
     columns.append(result.throughput)
     return jnp.stack(columns, axis=-1)
 
@@ -105,35 +108,52 @@ def weighted_least_squares(design: Array, targets: Array, weights: Array, suppor
 
 
 _SAMPLE_BUCKET = 2048
-"""Fit sample counts are padded (with invalid rays) to a multiple of this, so that one compiled
-fit serves the paths of a lens."""
+"""Fit sample counts are padded (with invalid rays) to this times a power of two, so that one
+compiled fit serves the paths of a lens (their kept ray counts differ)."""
+
+
+def _bucket(count: int) -> int:
+    return _SAMPLE_BUCKET * 2 ** max(0, math.ceil(math.log2(max(count, 1) / _SAMPLE_BUCKET)))
 
 
 def fit_columns(wide: TraceResult, variables, exponents: np.ndarray, clip_rows, clip_slots: int, support=None):
     """Least-squares coefficients of every output on exact traces ``wide`` of the widened lens,
-    and the error estimator: the sensor columns minus those of the fit without the top degree."""
+    and the error estimator: the sensor columns minus those of the fit without the top degree.
+
+    The compiled fit depends on the path only through its number of stop passes: the chosen
+    clear-aperture events' positions are gathered into ``clip_slots`` slots here (inactive ones
+    zero, fitted by zero coefficients), and the rays are padded to a bucket size."""
     count = variables.shape[0]
-    size = max(_SAMPLE_BUCKET, -(-count // _SAMPLE_BUCKET) * _SAMPLE_BUCKET)
+    size = _bucket(count)
+    xp = np if isinstance(wide.positions, np.ndarray) else jnp  # NumPy for a build, jax.numpy under refit's tracing
 
     def pad(x, axis=0):
         widths = [(0, 0)] * x.ndim
         widths[axis] = (0, size - count)
-        return jnp.pad(jnp.asarray(x), widths)
+        return np.pad(x, widths) if xp is np else jnp.pad(jnp.asarray(x), widths)
 
+    if clip_rows:
+        clip_positions = wide.event_positions[np.asarray(clip_rows)]
+    else:
+        clip_positions = xp.zeros((0, count, 3), wide.positions.dtype)
+    clip_positions = xp.concatenate([clip_positions, xp.zeros((clip_slots - len(clip_rows), count, 3), clip_positions.dtype)])
     padded = TraceResult(
         positions=pad(wide.positions), directions=pad(wide.directions), valid=pad(wide.valid), throughput=pad(wide.throughput),
-        lost_at_surface=pad(wide.lost_at_surface), stop_positions=pad(wide.stop_positions),
-        event_positions=None if wide.event_positions is None else pad(wide.event_positions, 1),
+        lost_at_surface=pad(wide.lost_at_surface), stop_positions=pad(wide.stop_positions), event_positions=None,
     )
     exponents_key = tuple(map(tuple, np.asarray(exponents).tolist()))
-    return _fit_columns_jit(padded, pad(variables), exponents_key, tuple(clip_rows), clip_slots, support)
+    return _fit_columns_jit(padded, pad(clip_positions, 1), pad(variables), exponents_key, support)
 
 
 @eqx.filter_jit
-def _fit_columns_jit(wide: TraceResult, variables, exponents_key, clip_rows, clip_slots: int, support):
+def _fit_columns_jit(wide: TraceResult, clip_positions, variables, exponents_key, support):
     exponents = np.asarray(exponents_key, dtype=np.int64)
+    # under an outer jit (a refit being differentiated) the samples are constants, and XLA would
+    # constant-fold the whole design matrix at compile time (measured: > 1 s per gather, 19 s to
+    # compile a degree-7 refit's Jacobian); the barrier keeps it a run-time computation
+    variables = jax.lax.optimization_barrier(variables)
     design = monomials(variables, exponents)
-    targets = _output_matrix(wide, clip_rows, clip_slots)
+    targets = _output_matrix(wide, clip_positions)
     weights = wide.valid.astype(design.dtype)
     totals = exponents.sum(axis=1)
     precise = precise_columns(wide.stop_positions.shape[1])
@@ -222,8 +242,10 @@ def fit_samples(lens: Lens, path, domain: PathDomain, needed: int, seed: int, ma
     hit = np.zeros(_REGION_GRID, bool)
     variables = sample_variables(chunk, rng)
     while len(variables):
-        traces = trace_samples(lens, path, domain, variables, record_events=True)
-        valid = np.asarray(traces.valid)
+        # selected and joined in NumPy: each batch keeps a different number of rays, and jax.numpy
+        # would compile a gather and a concatenation per count (measured: 2 of a warm 5 s build)
+        traces = jax.tree.map(np.asarray, trace_samples(lens, path, domain, variables, record_events=True))
+        valid = traces.valid
         candidates += len(variables)
         kept_variables.append(variables[valid])
         kept_traces.append(_select_rays(traces, valid))
@@ -245,7 +267,7 @@ def _select_rays(traces: TraceResult, keep: np.ndarray) -> TraceResult:
 
 def _concatenate_rays(parts: Sequence[TraceResult]) -> TraceResult:
     def join(name, axis=0):
-        return jnp.concatenate([getattr(p, name) for p in parts], axis=axis)
+        return np.concatenate([getattr(p, name) for p in parts], axis=axis)
 
     return TraceResult(
         positions=join("positions"), directions=join("directions"), valid=join("valid"), throughput=join("throughput"),

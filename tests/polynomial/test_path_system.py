@@ -237,7 +237,7 @@ def test_gradients_match_the_exact_tracer(biotar, primary7):
             positions = trace_with(with_curvature(curvature), o, d).positions
             return jnp.stack([jnp.sum(positions[:, 0]), jnp.sum(positions[:, 1])])
 
-        return jax.jacrev(sums, argnums=(0, 1, 2))(o, d, c)
+        return jax.jit(jax.jacrev(sums, argnums=(0, 1, 2)))(o, d, c)  # one program, not an eager op-by-op compile
 
     exact_jac = sensor_sums(lambda lens, o, d: jaxflare.trace(lens, o, d, w))
     poly_jac = sensor_sums(lambda lens, o, d: jaxflare.refit(primary7, lens).polynomial(o, d, w))
