@@ -359,6 +359,9 @@ def fit(
     ``method``: how samples are traced (``"exact"``, ``"polynomial"``, ``"auto"``), as in
     :func:`jaxflare.render`; ``paths``: only these ghost paths (default: all).
 
+    Levenberg-Marquardt and Gauss-Newton have converged when an accepted step changes every
+    fitted value (tint, dirt transmission, gain, layer thickness and index) and every residual by
+    less than ``atol + rtol |value|``; BFGS applies optimistix's test to its free variables.
     A solver that does not converge in ``max_steps`` still returns its best parameters, with
     ``converged`` False and its ``status``; so does one that diverges. ``progress(step, loss)``
     is called after each step.
