@@ -39,8 +39,17 @@ from ._sampling import front_disc
 from ._step import STEP, STEP_DONATING, Accumulators, RenderSetup, empty_accumulators
 from .effects import scene_effects
 
-PILOT_STREAM, RENDER_STREAM = 1, 2
-"""Random streams of the pilot's and the render's batches (see :meth:`RenderPlan.batch_key`)."""
+PILOT_STREAM, RENDER_STREAM, TRUST_STREAM = 1, 2, 3
+"""Random streams of the pilot's and the render's batches (see :meth:`RenderPlan.batch_key`), and
+of the trust probe's batches (:data:`TRUST_PROBE_SEED`)."""
+TRUST_PROBE_SEED = 0
+"""The seed of the batches that measure how many of a scene's samples each path system trusts
+(which sets each polynomial path's exact-fallback capacity, a static size of the compiled step).
+Fixed, so that the capacity, and with it the compiled step, is the same for every render seed:
+measured from the render's own pilot, a path near a capacity boundary (the Biotar's (4, 2) at
+degree 5, 14 % untrusted) got another capacity for another seed and recompiled the step (5-6 s)."""
+TRUST_PROBE_BATCHES = 2
+"""Batches of the trust probe (it runs the pilot's compiled step: no compile of its own)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -431,6 +440,12 @@ def plan_render(
     pilot_incoming = np.asarray(pilot.path_incoming, np.float64) / pilot_batches
     pilot_samples = np.asarray(pilot.path_samples, np.float64)
     untrusted_fraction = np.asarray(pilot.path_unevaluated, np.float64) / np.maximum(pilot_samples, 1)
+    if settings.method != "exact":  # the capacity from batches of a fixed seed (TRUST_PROBE_SEED)
+        probe = empty_accumulators(setup, num_layers)
+        for b in range(TRUST_PROBE_BATCHES):
+            probe = step(setup, probe, batch_key(TRUST_PROBE_SEED, TRUST_STREAM, b))
+        untrusted_fraction = np.asarray(probe.path_unevaluated, np.float64) / np.maximum(np.asarray(probe.path_samples, np.float64), 1)
+        del probe
 
     fallback_capacity = choose_fallbacks(settings.method, untrusted_fraction)
     culling = cull_paths(fresnel_table, path_tint, pilot_incoming, pilot_energy, num_flares, settings.cull_threshold)
