@@ -277,7 +277,7 @@ def polynomial_path_sets(systems, fallback_capacity: Sequence[float | None], ray
 
 
 def choose_fallbacks(method: str, untrusted_fraction: np.ndarray) -> list[float | None]:
-    """Each path's tracer from the pilot: polynomial paths get the smallest exact-fallback capacity
+    """Each path's tracer from the trust probe (:data:`TRUST_PROBE_SEED`): polynomial paths get the smallest exact-fallback capacity
     covering the samples their system does not trust; ``"auto"`` traces a path exactly (None) when
     that would need more than :data:`AUTO_MAX_FALLBACK`."""
     capacity: list[float | None] = [None] * len(untrusted_fraction)

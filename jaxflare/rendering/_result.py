@@ -88,6 +88,8 @@ class PathStatistics(_Record):
     polynomial_degree: int | None
     polynomial_validation_trusted_fraction: float | None
     polynomial_untrusted_sample_fraction: float | None
+    """Fraction of the trust probe's samples (fixed-seed batches of this scene) the path's system
+    did not trust; it sets ``exact_fallback_capacity``."""
     exact_fallback_capacity: float | None
 
 
