@@ -132,11 +132,9 @@ def fit_columns(wide: TraceResult, variables, exponents: np.ndarray, clip_rows, 
         widths[axis] = (0, size - count)
         return np.pad(x, widths) if xp is np else jnp.pad(jnp.asarray(x), widths)
 
+    clip_positions = xp.zeros((clip_slots - len(clip_rows), count, 3), wide.positions.dtype)  # the inactive slots
     if clip_rows:
-        clip_positions = wide.event_positions[np.asarray(clip_rows)]
-    else:
-        clip_positions = xp.zeros((0, count, 3), wide.positions.dtype)
-    clip_positions = xp.concatenate([clip_positions, xp.zeros((clip_slots - len(clip_rows), count, 3), clip_positions.dtype)])
+        clip_positions = xp.concatenate([wide.event_positions[np.asarray(clip_rows)], clip_positions])
     padded = TraceResult(
         positions=pad(wide.positions), directions=pad(wide.directions), valid=pad(wide.valid), throughput=pad(wide.throughput),
         lost_at_surface=pad(wide.lost_at_surface), stop_positions=pad(wide.stop_positions), event_positions=None,

@@ -439,13 +439,13 @@ def plan_render(
     pilot_energy = np.asarray(pilot.path_energy, np.float64) @ luminance / pilot_batches
     pilot_incoming = np.asarray(pilot.path_incoming, np.float64) / pilot_batches
     pilot_samples = np.asarray(pilot.path_samples, np.float64)
-    untrusted_fraction = np.asarray(pilot.path_unevaluated, np.float64) / np.maximum(pilot_samples, 1)
-    if settings.method != "exact":  # the capacity from batches of a fixed seed (TRUST_PROBE_SEED)
-        probe = empty_accumulators(setup, num_layers)
+    trust = pilot
+    if settings.method != "exact":  # the fallback capacities from batches of a fixed seed (TRUST_PROBE_SEED)
+        trust = empty_accumulators(setup, num_layers)
         for b in range(TRUST_PROBE_BATCHES):
-            probe = step(setup, probe, batch_key(TRUST_PROBE_SEED, TRUST_STREAM, b))
-        untrusted_fraction = np.asarray(probe.path_unevaluated, np.float64) / np.maximum(np.asarray(probe.path_samples, np.float64), 1)
-        del probe
+            trust = step(setup, trust, batch_key(TRUST_PROBE_SEED, TRUST_STREAM, b))
+    untrusted_fraction = np.asarray(trust.path_unevaluated, np.float64) / np.maximum(np.asarray(trust.path_samples, np.float64), 1)
+    del trust
 
     fallback_capacity = choose_fallbacks(settings.method, untrusted_fraction)
     culling = cull_paths(fresnel_table, path_tint, pilot_incoming, pilot_energy, num_flares, settings.cull_threshold)
