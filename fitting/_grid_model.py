@@ -127,18 +127,32 @@ def dirt_images_bytes(flare: GridFlareModel, dirt_shape, block: int, *, per_ligh
     return _stack_bytes(flare, int(np.prod(dirt_shape)), block, per_light_colour)
 
 
+DIRT_RUN_BYTES = 2**28
+"""Largest packed-image buffer (float32) of one pass of :func:`grid_dirt_images`: as many dirt
+cells as fit are splatted together."""
+
+
 def grid_dirt_images(flare: GridFlareModel, dirt_shape, pixel_weight=None, block: int = 1, *, per_light_colour: bool = False) -> DirtImages:
-    """The one-hot dirt-cell images of ``flare`` (one splat per cell and gain basis), weighted by
-    ``pixel_weight`` and summed over ``block`` x ``block`` pixels as they are made."""
+    """The one-hot dirt-cell images of ``flare`` (:meth:`GridFlareModel.per_path_cell_images`:
+    one pass over the sub-samples per gain basis and run of cells that fits in
+    :data:`DIRT_RUN_BYTES`), weighted by ``pixel_weight`` and summed over ``block`` x ``block``
+    pixels as they are made."""
     _check_block(flare, block)
     rows, columns = (int(v) for v in dirt_shape)
-    cells = []
-    for cell in range(rows * columns):
-        one_hot = np.zeros((rows, columns, 1), np.float32)
-        one_hot.flat[cell] = 1.0
-        cells.append(_pooled_stack(flare, pixel_weight, block, per_light_colour, lambda g: flare.per_path_image(one_hot, g)))
+    num_cells = rows * columns
+    width, height = flare.resolution
+    run = int(np.clip(DIRT_RUN_BYTES // (flare.num_paths * flare.layer_bytes), 1, num_cells))
+    weight = np.ones((height, width)) if pixel_weight is None else np.asarray(pixel_weight, np.float64)
+    gains = [None] if not per_light_colour else list(gain_basis(flare.num_lights))
+    per_gain = []
+    for gain in gains:
+        runs = [
+            _weighted_blocks(np.asarray(flare.per_path_cell_images((rows, columns), first, min(run, num_cells - first), gain), np.float32), weight, block)
+            for first in range(0, num_cells, run)
+        ]
+        per_gain.append(np.concatenate(runs, axis=1))  # (P, D, h, w, 3)
     return DirtImages(
-        images=jnp.asarray(np.stack(cells, axis=1)), dirt_shape=(rows, columns), path_interfaces=jnp.asarray(grid_interfaces(flare)),
+        images=jnp.asarray(np.stack(per_gain, axis=2)), dirt_shape=(rows, columns), path_interfaces=jnp.asarray(grid_interfaces(flare)),
         num_lights=flare.num_lights,
     )
 

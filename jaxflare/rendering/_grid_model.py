@@ -40,7 +40,7 @@ from ..optics import EventTable, on_axis_fresnel
 from ..scenes import Scene, load_scene
 from ._grid import band_averaging, job_colours, job_table
 from ._grid_plan import GridPlan, plan_grid, prepare_grid
-from ._grid_splat import COMPOSE_LEVELS, JobTable, RecordTable, empty_grid_accumulators, splat_subsamples
+from ._grid_splat import COMPOSE_LEVELS, DirtCells, JobTable, RecordTable, empty_grid_accumulators, packed_shape, splat_subsamples
 from ._lights import LightArrays
 from ._quality import radiance_scale
 from ._step import RenderSetup
@@ -115,6 +115,12 @@ class GridFlareModel(eqx.Module):
     def num_paths(self) -> int:
         return len(self.paths)
 
+    @property
+    def layer_bytes(self) -> int:
+        """Bytes of one layer of the splat's packed level images (float32 RGB)."""
+        rows, columns = packed_shape(*self.resolution)
+        return 4 * 3 * rows * columns
+
     def path_fresnel(self, coating_indices: Float[Array, "S L"], coating_thicknesses_nm: Float[Array, "S L"]) -> Float[Array, "P Lw"]:
         """Each flare path's on-axis coated Fresnel factor on the spectral grid for the lens with
         these coating arrays (as :attr:`jaxflare.Lens.coating_indices` and
@@ -127,7 +133,7 @@ class GridFlareModel(eqx.Module):
         )
         return on_axis_fresnel(lens, self.events, self.setup.spectral.wavelength_nm.astype(dtype))
 
-    def _splat(self, path_tint, dirt, light_gain, per_path: bool, path_fresnel=None):
+    def _splat(self, path_tint, dirt, light_gain, per_path: bool, path_fresnel=None, dirt_cells: DirtCells | None = None):
         setup = self.setup
         dtype = self.colour_bases.dtype
         gains = jnp.ones((self.num_lights, 3), dtype) if light_gain is None else jnp.asarray(light_gain).astype(dtype)
@@ -137,11 +143,15 @@ class GridFlareModel(eqx.Module):
             gained = dataclasses.replace(setup, lights=scaled_lights(setup.lights, gains))
             colour = job_colours(gained, jnp.asarray(path_fresnel).astype(dtype), self.jobs.light, self.jobs.path, self.band_nm, self.band_averaging)
         jobs = dataclasses.replace(self.jobs, colour=colour, layer=self.job_slot if per_path else jnp.zeros_like(self.job_slot))
-        effects = setup.effects if dirt is None else dataclasses.replace(setup.effects, dirt=jnp.asarray(dirt).astype(dtype))
+        if dirt_cells is not None:  # the one-hot maps of the run's cells stand for the dirt map
+            effects = dataclasses.replace(setup.effects, dirt=None)
+        else:
+            effects = setup.effects if dirt is None else dataclasses.replace(setup.effects, dirt=jnp.asarray(dirt).astype(dtype))
         setup = dataclasses.replace(setup, path_tint=jnp.asarray(path_tint).astype(dtype), effects=effects)
         width, height = self.resolution
-        acc = empty_grid_accumulators(self.num_paths if per_path else 1, self.num_paths, width, height)
-        acc = splat_subsamples(setup, jobs, self.table, acc, self.total, self.first, self.chunks)
+        layers = (self.num_paths if per_path else 1) * (1 if dirt_cells is None else dirt_cells.count)
+        acc = empty_grid_accumulators(layers, self.num_paths, width, height)
+        acc = splat_subsamples(setup, jobs, self.table, acc, self.total, self.first, self.chunks, dirt_cells)
         return COMPOSE_LEVELS(acc.buffer, width, height) * self.to_radiance
 
     def image(
@@ -163,6 +173,18 @@ class GridFlareModel(eqx.Module):
         dtype = self.colour_bases.dtype
         gain = jnp.ones((self.num_lights, 3), dtype) if light_gain is None else jnp.asarray(light_gain, dtype)
         return _per_path_splat(self, path_fresnel, gain, None if dirt is None else jnp.asarray(dirt, dtype))
+
+    def per_path_cell_images(self, dirt_shape: tuple[int, int], first: int, count: int, light_gain=None):
+        """Each flare path's image (P, count, H, W, 3) at unit tint for the one-hot dirt maps
+        (shape ``dirt_shape``: rows, columns; one channel) of cells ``first`` .. ``first + count
+        - 1`` (row-major), in one pass over the sub-samples (each splatted with its four bilinear
+        dirt weights); equal to :meth:`per_path_image` of each one-hot map. Jitted, one compile
+        per shape and run of cells."""
+        dtype = self.colour_bases.dtype
+        gain = jnp.ones((self.num_lights, 3), dtype) if light_gain is None else jnp.asarray(light_gain, dtype)
+        cells = DirtCells(shape=(int(dirt_shape[0]), int(dirt_shape[1])), first=int(first), count=int(count))
+        width, height = self.resolution
+        return _per_path_cells_splat(self, gain, cells).reshape(self.num_paths, cells.count, height, width, 3)
 
     def knot_fresnels(self, step_nm: float = KNOT_STEP_NM):
         """The spectral knots (:func:`knot_hats`: indices into the spectral grid) and, per knot,
@@ -197,6 +219,12 @@ class GridFlareModel(eqx.Module):
 def _per_path_splat(model: GridFlareModel, path_fresnel, light_gain, dirt):
     ones = jnp.ones((model.num_paths, 3), model.colour_bases.dtype)
     return model._splat(ones, dirt, light_gain, per_path=True, path_fresnel=path_fresnel)
+
+
+@eqx.filter_jit
+def _per_path_cells_splat(model: GridFlareModel, light_gain, cells: DirtCells):
+    ones = jnp.ones((model.num_paths, 3), model.colour_bases.dtype)
+    return model._splat(ones, None, light_gain, per_path=True, dirt_cells=cells)
 
 
 def _model_scene(scene) -> Scene:

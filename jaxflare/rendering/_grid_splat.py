@@ -36,7 +36,7 @@ from ..optics import inside_iris
 from ._grid_trace import COS, FLUX, FRONT, HOOD, MARGIN, MAX_STOP_PASSES, NUM_QUANTITIES, SENSOR, STOP, THROUGHPUT, VALID, VISIBLE
 from ._records import image_position
 from ._splat import splat
-from .effects import dirt_transmission, hood_inside
+from .effects import dirt_cell_taps, dirt_transmission, hood_inside
 
 LINEAR = 9
 """Quantities that move with the point on the light (sensor x, y, stop x, y of three passes, margin)."""
@@ -192,8 +192,8 @@ def tile_lattice(records: RecordTable, start_tile: Array, num_tiles: int):
 def subsample_values(setup, jobs: JobTable, records: RecordTable, total: Array, start_tile: Array, num_tiles: int):
     """The sub-samples of ``num_tiles`` tiles from ``start_tile`` (``num_tiles * TILE`` of them,
     flat, in tile order): their layer, level, image position, RGB value (zero where they miss),
-    hit mask, statistics slot, entrance weight where they hit, and the value unclipped by the iris
-    and clear apertures. What a record or a job holds is read once per tile and shared by its
+    hit mask, statistics slot, entrance weight where they hit, the value unclipped by the iris
+    and clear apertures, and where they cross the front vertex plane (mm). What a record or a job holds is read once per tile and shared by its
     sub-samples; ``total`` (the sub-sample count) only feeds the run-time one that keeps shared
     values in memory."""
     r, local, used = tile_lattice(records, start_tile, num_tiles)
@@ -270,7 +270,8 @@ def subsample_values(setup, jobs: JobTable, records: RecordTable, total: Array, 
     value = jnp.where(hit[:, None], value, 0.0)
     per_sample = lambda x: jnp.repeat(x, TILE)  # noqa: E731
     share = jnp.where(hit, per_sample(share), 0.0)
-    return per_sample(jobs.layer[job]), per_sample(jobs.level[job]), column, row, value, hit, per_sample(jobs.slot[job]), share, unclipped
+    front_xy = q[..., FRONT : FRONT + 2].reshape(flat, 2)
+    return per_sample(jobs.layer[job]), per_sample(jobs.level[job]), column, row, value, hit, per_sample(jobs.slot[job]), share, unclipped, front_xy
 
 
 def _level_position(level: Array, column: Array, row: Array, width: int, height: int):
@@ -295,22 +296,49 @@ class GridAccumulators(eqx.Module):
     """What the path's cells could carry if the iris and the clear apertures clipped nothing."""
 
 
+class DirtCells(eqx.Module):
+    """A run of cells of a one-channel dirt map (row-major), each splatted into its own layer."""
+
+    shape: tuple[int, int] = eqx.field(static=True)
+    """The map's (rows, columns)."""
+    first: int = eqx.field(static=True)
+    count: int = eqx.field(static=True)
+
+
+def _splat_dirt_cells(buffer, cells: DirtCells, front_radius_mm, layer, x, y, value, hit, front_xy):
+    """Each sub-sample's value, times the weight with which :func:`dirt_transmission` reads each of
+    its four dirt cells, into layer ``layer * cells.count + (cell - cells.first)`` (cells outside
+    the run are dropped)."""
+    for cell, weight in dirt_cell_taps(cells.shape, front_xy, front_radius_mm):
+        local = cell - cells.first
+        inside = (local >= 0) & (local < cells.count)
+        buffer = splat(buffer, layer * cells.count + jnp.clip(local, 0, cells.count - 1), x, y, value * weight[:, None], hit & inside)
+    return buffer
+
+
 @eqx.debug.assert_max_traces(max_traces=None)  # counts compilations: tests catch retracing with get_num_traces
 def splat_subsamples(
-    setup, jobs: JobTable, records: RecordTable, acc: GridAccumulators, total: Array, chunk_first: Array, chunks: Array
+    setup, jobs: JobTable, records: RecordTable, acc: GridAccumulators, total: Array, chunk_first: Array, chunks: Array,
+    dirt_cells: DirtCells | None = None,
 ) -> GridAccumulators:
     """Every sub-sample of the records, in ``chunks`` chunks of :data:`TILES_PER_CHUNK` tiles (chunk
     ``c`` starts at tile ``chunk_first[c]``), splatted into the packed level images (a loop: one
-    compilation per render structure)."""
+    compilation per render structure). With ``dirt_cells`` (and no dirt map in ``setup``) each
+    layer ``l`` becomes ``dirt_cells.count`` layers ``l * count + k``: the images of the one-hot
+    maps of the run's cells, all in one pass over the sub-samples."""
     width, height = setup.resolution
 
     def body(c, acc):
-        layer, level, column, row, value, hit, slot, share, unclipped = subsample_values(
+        layer, level, column, row, value, hit, slot, share, unclipped, front_xy = subsample_values(
             setup, jobs, records, total, chunk_first[c], TILES_PER_CHUNK
         )
         x, y = _level_position(level, column, row, width, height)
+        if dirt_cells is None:
+            buffer = splat(acc.buffer, layer, x, y, value, hit)
+        else:
+            buffer = _splat_dirt_cells(acc.buffer, dirt_cells, setup.front.radius_mm, layer, x, y, value, hit, front_xy)
         return GridAccumulators(
-            buffer=splat(acc.buffer, layer, x, y, value, hit),
+            buffer=buffer,
             path_energy=acc.path_energy.at[slot].add(value),
             path_hits=acc.path_hits.at[slot].add(jnp.where(hit, 1.0, 0.0)),
             path_weight=acc.path_weight.at[slot].add(share),

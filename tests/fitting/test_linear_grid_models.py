@@ -36,3 +36,20 @@ def test_dirt_cell_images_sum_to_the_resplat_for_any_map_tints_and_gains():
     clean = np.asarray(dirt_image_model(images, jnp.ones((10, 3)), jnp.ones((2, 3, 1)), jnp.ones((2, 3))), np.float64)
     no_dirt = np.asarray(IMAGE(model, jnp.ones((model.num_paths, 3)), None, None), np.float64)
     np.testing.assert_allclose(clean, no_dirt, rtol=1e-4, atol=1e-5 * no_dirt.max())
+
+
+def test_dirt_cells_splatted_in_runs_equal_one_splat_per_one_hot_map(monkeypatch):
+    """grid_dirt_images splats runs of cells together (each sub-sample into its four bilinear
+    cells' layers); with runs of two cells of a 2 x 3 map (three passes, the last one full and the
+    boundaries between them inside the map) every cell's images equal re-splatting its one-hot map."""
+    import fitting._grid_model as grid_model
+
+    model = grid_flare_model(SCENE, "preview")
+    monkeypatch.setattr(grid_model, "DIRT_RUN_BYTES", 2 * model.num_paths * model.layer_bytes)
+    images = np.asarray(grid_dirt_images(model, (2, 3), block=1).images, np.float64)  # (P, 6, 1, H, W, 3)
+    for cell in range(6):
+        one_hot = np.zeros((2, 3, 1), np.float32)
+        one_hot.flat[cell] = 1.0
+        expected = np.asarray(model.per_path_image(jnp.asarray(one_hot)), np.float64)
+        assert expected.sum() > 0, cell
+        np.testing.assert_allclose(images[:, cell, 0], expected, rtol=1e-4, atol=1e-6 * expected.max())

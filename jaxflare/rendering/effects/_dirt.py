@@ -53,9 +53,9 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ...io import read_linear_image
-from ._bilinear import bilinear
+from ._bilinear import bilinear, bilinear_taps
 
-__all__ = ["DIRT_FORMATS", "dirt_transmission", "load_dirt_map"]
+__all__ = ["DIRT_FORMATS", "dirt_cell_taps", "dirt_transmission", "load_dirt_map"]
 
 DIRT_FORMATS = "PNG (.png), JPEG (.jpg, .jpeg), TIFF (.tif, .tiff) or OpenEXR (.exr)"
 """The dirt-map formats :func:`load_dirt_map` reads, for messages."""
@@ -120,9 +120,25 @@ def dirt_transmission(
         raise ValueError(f"xy_mm must have shape (..., 2), got {xy_mm.shape}")
     if isinstance(front_radius_mm, (int, float)) and not (math.isfinite(front_radius_mm) and front_radius_mm > 0):
         raise ValueError(f"front_radius_mm must be a finite positive number, got {front_radius_mm!r}")
-    height, width = dirt_map.shape[:2]
-    radius = jnp.asarray(front_radius_mm, dtype=jnp.result_type(xy_mm.dtype, float))
-    column = (xy_mm[..., 0] + radius) / (2 * radius) * width
-    row = (radius - xy_mm[..., 1]) / (2 * radius) * height
+    column, row = _map_position(dirt_map.shape[:2], xy_mm, front_radius_mm)
     value = _bilinear_clamped(dirt_map, column, row)
     return jnp.broadcast_to(value, value.shape[:-1] + (3,))
+
+
+def _map_position(shape: tuple[int, int], xy_mm: Array, front_radius_mm) -> tuple[Array, Array]:
+    """Continuous (column, row) in a dirt map of ``shape`` (rows, columns) of front-lens points."""
+    height, width = shape
+    radius = jnp.asarray(front_radius_mm, dtype=jnp.result_type(xy_mm.dtype, float))
+    return (xy_mm[..., 0] + radius) / (2 * radius) * width, (radius - xy_mm[..., 1]) / (2 * radius) * height
+
+
+def dirt_cell_taps(shape: tuple[int, int], xy_mm: Array, front_radius_mm) -> tuple[tuple[Array, Array], ...]:
+    """The dirt-map cells (row-major indices into a map of ``shape`` (rows, columns)) and weights
+    through which :func:`dirt_transmission` reads each front-lens point: four ``(cell, weight)``
+    pairs shaped like ``xy_mm[..., 0]``. The transmission of a one-channel map ``d`` is
+    ``sum_k d.flat[cell_k] * weight_k``, so a point's light splatted with ``weight_k`` into cell
+    ``cell_k``'s image builds every one-hot map's image in one pass."""
+    if len(shape) != 2 or min(shape) < 2:
+        raise ValueError(f"a dirt map must be at least 2 x 2 pixels, got shape {tuple(shape)}")
+    column, row = _map_position(shape, jnp.asarray(xy_mm), front_radius_mm)
+    return bilinear_taps(*shape, column, row, extend_edges=False)

@@ -227,3 +227,20 @@ def test_too_small(tmp_path):
     Image.fromarray(np.zeros((1, 5), np.uint8)).save(tmp_path / "thin.png")
     with pytest.raises(ValueError, match="thin.png.*at least 2 x 2"):
         load_dirt_map(tmp_path / "thin.png")
+
+
+def test_cell_taps_reproduce_the_transmission_inside_and_beyond_the_map():
+    """dirt_cell_taps gives the cells and weights through which dirt_transmission reads each point
+    (inside, on the clamped border and far outside the map), for maps down to the smallest, 2 x 2."""
+    from jaxflare.rendering.effects import dirt_cell_taps
+
+    rng = np.random.default_rng(3)
+    xy = jnp.asarray(rng.uniform(-14.0, 14.0, (400, 2)))  # a front radius of 10 mm: a fifth lie outside
+    for shape in ((5, 7), (2, 9), (2, 2)):
+        dirt = rng.uniform(0.1, 1.0, shape + (1,))
+        expected = np.asarray(dirt_transmission(jnp.asarray(dirt), xy, 10.0))[:, 0]
+        taps = dirt_cell_taps(shape, xy, 10.0)
+        weights = np.stack([np.asarray(w) for _, w in taps])
+        assert np.all(weights >= -1e-12) and np.allclose(weights.sum(axis=0), 1.0), shape
+        assembled = sum(dirt.reshape(-1)[np.asarray(c)] * np.asarray(w) for c, w in taps)
+        np.testing.assert_allclose(assembled, expected, rtol=1e-12, err_msg=str(shape))
