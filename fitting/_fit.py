@@ -9,8 +9,8 @@ lights stay at their prior instead of drifting, and on the tints towards 1. Solv
 
 - ``"levenberg-marquardt"`` and ``"gauss-newton"``: least squares, each step's linear system solved
   densely (``lineax.QR``) for fits of at most :data:`DENSE_PARAMETERS` parameters (a dirt map only
-  through per-cell images), else matrix-free (``lineax.Normal(lineax.CG(...))``), which scales to
-  large dirt maps;
+  through per-cell images, and then up to :data:`DENSE_STACK_PARAMETERS`), else matrix-free
+  (``lineax.Normal(lineax.CG(...))``), which scales to large dirt maps re-splatted;
 - ``"bfgs"``: a quasi-Newton minimiser of the sum of squares (dense inverse Hessian: small fits).
 
 The fit runs in float64 on a forward model: by default the deterministic grid estimator
@@ -256,9 +256,17 @@ DENSE_PARAMETERS = 128
 Jacobian, one forward-mode pass per parameter), unless they fit the dirt map by re-splatting the
 grid's sub-samples or re-tracing samples (too large to batch over parameters); larger ones, and
 those dirt fits, go matrix-free with conjugate gradients on the normal equations. A dirt map fitted
-through per-cell images (:class:`~._grid_model.DirtImages`) is solved densely like the tints.
+through per-cell images (:class:`~._grid_model.DirtImages`) is solved densely like the tints, up to
+:data:`DENSE_STACK_PARAMETERS`.
 Measured on a 64 x 48 thin-film fit of 8 layers: 1.6 s per step matrix-free (CG runs to hundreds
 of iterations on its ill-conditioned normal matrix)."""
+
+
+DENSE_STACK_PARAMETERS = 2048
+"""A dirt map fitted through per-cell image stacks (:class:`~._grid_model.DirtImages`) is solved
+densely up to this many parameters: its Jacobian is a contraction of the stacks it already reads
+for the residual, where conjugate gradients re-read them twice per iteration for hundreds of
+iterations (a 32 x 32 map on three 128 x 72 plates: over 6 minutes in the solve, not finished)."""
 
 
 def _solver(name: str, rtol: float, atol: float, verbose=False, dense: bool = False, physical=None):
@@ -481,7 +489,7 @@ def fit(
         # a dirt map fitted by re-splatting (or re-tracing) is too large to batch over parameters;
         # through per-cell image stacks the dirt is as linear and as cheap as the tints
         resplats = "dirt" in params and not all(isinstance(f, DirtImages) for f in forwards)
-        dense = not resplats and num_free <= DENSE_PARAMETERS
+        dense = not resplats and num_free <= (DENSE_STACK_PARAMETERS if "dirt" in params else DENSE_PARAMETERS)
         best, history, steps, converged, status = _solve(residuals, free, solver, rtol, atol, max_steps, progress, dense=dense, physical=unpacked)
         tints, dirt, gain, film = unpacked(best)
         fitted_values = {name: value for name, value in (("coatings", tints), ("lights", gain)) if name in params}
@@ -726,7 +734,9 @@ def _standard_errors(data_residuals, fitted: dict, *, prior_weights: dict, resid
     residual_at = lambda x: data_residuals(unflatten(x))
     r = residual_at(flat)
     basis = jnp.eye(flat.size, dtype=flat.dtype)
-    columns = jax.lax.map(lambda e: jax.jvp(residual_at, (flat,), (e,))[1], basis)  # (p, n): memory p x n only
+    # (p, n): memory p x n only; in batches, so that what a derivative shares (contractions of
+    # a model's image stacks with the fitted values) is made once a batch
+    columns = jax.lax.map(lambda e: jax.jvp(residual_at, (flat,), (e,))[1], basis, batch_size=32)
     data_normal = np.asarray(columns @ columns.T)  # the plate's information alone
     prior = np.concatenate([np.broadcast_to(np.asarray(prior_weights.get(n, 0.0), np.float64), (size,)).ravel() for n, size in zip(names, sizes)])
     normal = data_normal + np.diag(prior)

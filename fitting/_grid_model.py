@@ -127,9 +127,21 @@ def dirt_images_bytes(flare: GridFlareModel, dirt_shape, block: int, *, per_ligh
     return _stack_bytes(flare, int(np.prod(dirt_shape)), block, per_light_colour)
 
 
-DIRT_RUN_BYTES = 2**28
+DIRT_RUN_BYTES = 2**30
 """Largest packed-image buffer (float32) of one pass of :func:`grid_dirt_images`: as many dirt
-cells as fit are splatted together."""
+cells as fit are splatted together (every pass reads all the grid's sub-samples). Measured on the
+plate-fit benchmark's double Gauss (128 x 72, 45 paths, 13 M sub-samples, a 32 x 32 map): runs of
+35 cells (2^28 bytes) took 4.0 s a pass, runs of 143 (2^30) 7.8-8.9 s, i.e. 0.11 and 0.06 s a
+cell; one splat per one-hot map took 1.37 s a cell."""
+
+
+@eqx.filter_jit
+def _cell_blocks(flare: GridFlareModel, dirt_shape, first, count: int, gain, weight, block: int):
+    """The run's dirt-cell images, weighted per pixel and summed over ``block`` x ``block`` pixels
+    in the compiled program (the full-resolution images never leave it): (P, count, h, w, 3)."""
+    images = flare.per_path_cell_images(dirt_shape, first, count, gain) * weight[:, :, None]
+    paths, cells, height, width, _ = images.shape
+    return images.reshape(paths, cells, height // block, block, width // block, block, 3).sum(axis=(3, 5))
 
 
 def grid_dirt_images(flare: GridFlareModel, dirt_shape, pixel_weight=None, block: int = 1, *, per_light_colour: bool = False) -> DirtImages:
@@ -146,11 +158,11 @@ def grid_dirt_images(flare: GridFlareModel, dirt_shape, pixel_weight=None, block
     gains = [None] if not per_light_colour else list(gain_basis(flare.num_lights))
     per_gain = []
     for gain in gains:
-        runs = [
-            _weighted_blocks(np.asarray(flare.per_path_cell_images((rows, columns), first, min(run, num_cells - first), gain), np.float32), weight, block)
-            for first in range(0, num_cells, run)
-        ]
-        per_gain.append(np.concatenate(runs, axis=1))  # (P, D, h, w, 3)
+        gain = None if gain is None else jnp.asarray(gain, jnp.float32)
+        # every run as long as the first (the last one padded with empty cells): one compiled splat
+        runs = [np.asarray(_cell_blocks(flare, (rows, columns), jnp.asarray(first, jnp.int32), run, gain, jnp.asarray(weight, jnp.float32), block))
+                for first in range(0, num_cells, run)]
+        per_gain.append(np.concatenate(runs, axis=1)[:, :num_cells].astype(np.float64))  # (P, D, h, w, 3)
     return DirtImages(
         images=jnp.asarray(np.stack(per_gain, axis=2)), dirt_shape=(rows, columns), path_interfaces=jnp.asarray(grid_interfaces(flare)),
         num_lights=flare.num_lights,
@@ -162,4 +174,26 @@ def dirt_image_model(images: DirtImages, interface_tints, dirt, light_gain=None)
     tints = _path_tints(images.path_interfaces, interface_tints)
     cells = jnp.asarray(dirt).reshape(-1).astype(images.images.dtype)
     gains = jnp.ones((1,), images.images.dtype) if images.images.shape[2] == 1 else jnp.asarray(light_gain).reshape(-1).astype(images.images.dtype)
-    return jnp.einsum("pc,d,k,pdkhwc->hwc", tints, cells, gains, images.images)
+    return _trilinear(tints.astype(images.images.dtype), cells, gains, images.images)
+
+
+@jax.custom_jvp
+def _trilinear(tints, cells, gains, stack):
+    """``sum_pdk tints_pc cells_d gains_k stack_pdkhwc``: linear in each of the three vectors."""
+    return jnp.einsum("pc,d,k,pdkhwc->hwc", tints, cells, gains, stack)
+
+
+@_trilinear.defjvp
+def _trilinear_jvp(primals, tangents):
+    """The derivative as three contractions of the stack with the primal vectors (made once, also
+    when the tangents are batched: a Jacobian costs three passes over the stack, not one per
+    parameter as the einsum's own rule under ``vmap`` would). The stack is a constant: its
+    tangent is ignored."""
+    tints, cells, gains, stack = primals
+    d_tints, d_cells, d_gains, _ = tangents
+    by_path = jnp.einsum("d,k,pdkhwc->phwc", cells, gains, stack)
+    by_cell = jnp.einsum("pc,k,pdkhwc->dhwc", tints, gains, stack)
+    by_gain = jnp.einsum("pc,d,pdkhwc->khwc", tints, cells, stack)
+    value = jnp.einsum("pc,phwc->hwc", tints, by_path)
+    tangent = jnp.einsum("pc,phwc->hwc", d_tints, by_path) + jnp.einsum("d,dhwc->hwc", d_cells, by_cell) + jnp.einsum("k,khwc->hwc", d_gains, by_gain)
+    return value, tangent

@@ -177,12 +177,12 @@ class GridFlareModel(eqx.Module):
     def per_path_cell_images(self, dirt_shape: tuple[int, int], first: int, count: int, light_gain=None):
         """Each flare path's image (P, count, H, W, 3) at unit tint for the one-hot dirt maps
         (shape ``dirt_shape``: rows, columns; one channel) of cells ``first`` .. ``first + count
-        - 1`` (row-major), in one pass over the sub-samples (each splatted with its four bilinear
-        dirt weights); equal to :meth:`per_path_image` of each one-hot map. Jitted, one compile
-        per shape and run of cells."""
+        - 1`` (row-major; cells past the map's last are black), in one pass over the sub-samples
+        (each splatted with its four bilinear dirt weights); equal to :meth:`per_path_image` of
+        each one-hot map. Jitted, one compile per map shape and ``count`` (``first`` is data)."""
         dtype = self.colour_bases.dtype
         gain = jnp.ones((self.num_lights, 3), dtype) if light_gain is None else jnp.asarray(light_gain, dtype)
-        cells = DirtCells(shape=(int(dirt_shape[0]), int(dirt_shape[1])), first=int(first), count=int(count))
+        cells = DirtCells(shape=(int(dirt_shape[0]), int(dirt_shape[1])), first=jnp.asarray(first, jnp.int32), count=int(count))
         width, height = self.resolution
         return _per_path_cells_splat(self, gain, cells).reshape(self.num_paths, cells.count, height, width, 3)
 

@@ -301,8 +301,10 @@ class DirtCells(eqx.Module):
 
     shape: tuple[int, int] = eqx.field(static=True)
     """The map's (rows, columns)."""
-    first: int = eqx.field(static=True)
+    first: Int[Array, ""]
+    """The run's first cell (data: every run of a map shares one compiled splat)."""
     count: int = eqx.field(static=True)
+    """Cells in the run (a run past the map's last cell has empty layers there)."""
 
 
 def _splat_dirt_cells(buffer, cells: DirtCells, front_radius_mm, layer, x, y, value, hit, front_xy):

@@ -40,16 +40,42 @@ def test_dirt_cell_images_sum_to_the_resplat_for_any_map_tints_and_gains():
 
 def test_dirt_cells_splatted_in_runs_equal_one_splat_per_one_hot_map(monkeypatch):
     """grid_dirt_images splats runs of cells together (each sub-sample into its four bilinear
-    cells' layers); with runs of two cells of a 2 x 3 map (three passes, the last one full and the
-    boundaries between them inside the map) every cell's images equal re-splatting its one-hot map."""
+    cells' layers); with runs of four cells of a 2 x 3 map (two passes with the boundary between
+    them inside the map, the second padded with two cells past its end) every cell's images, weighted
+    and summed in blocks, equal re-splatting its one-hot map."""
     import fitting._grid_model as grid_model
 
     model = grid_flare_model(SCENE, "preview")
-    monkeypatch.setattr(grid_model, "DIRT_RUN_BYTES", 2 * model.num_paths * model.layer_bytes)
-    images = np.asarray(grid_dirt_images(model, (2, 3), block=1).images, np.float64)  # (P, 6, 1, H, W, 3)
+    monkeypatch.setattr(grid_model, "DIRT_RUN_BYTES", 4 * model.num_paths * model.layer_bytes)
+    weight = np.random.default_rng(2).uniform(0.0, 2.0, (48, 64))
+    images = np.asarray(grid_dirt_images(model, (2, 3), weight, block=4).images, np.float64)  # (P, 6, 1, 12, 16, 3)
+    assert images.shape == (model.num_paths, 6, 1, 12, 16, 3)
     for cell in range(6):
         one_hot = np.zeros((2, 3, 1), np.float32)
         one_hot.flat[cell] = 1.0
-        expected = np.asarray(model.per_path_image(jnp.asarray(one_hot)), np.float64)
+        full = np.asarray(model.per_path_image(jnp.asarray(one_hot)), np.float64) * weight[:, :, None]
+        expected = full.reshape(model.num_paths, 12, 4, 16, 4, 3).sum(axis=(2, 4))
         assert expected.sum() > 0, cell
         np.testing.assert_allclose(images[:, cell, 0], expected, rtol=1e-4, atol=1e-6 * expected.max())
+
+
+def test_dirt_model_derivatives_equal_the_plain_contractions():
+    """dirt_image_model's own derivative rule (three contractions of the stack, made once per
+    Jacobian) gives the Jacobian and the gradient of the plain einsum, in tints, dirt and gains."""
+    from fitting._grid_model import DirtImages
+
+    rng = np.random.default_rng(4)
+    paths, cells, lights, h, w = 3, 4, 2, 3, 5
+    stack = jnp.asarray(rng.uniform(0.0, 1.0, (paths, cells, 3 * lights, h, w, 3)))
+    images = DirtImages(images=stack, dirt_shape=(2, 2), path_interfaces=jnp.asarray([[2, 1], [3, 0], [3, 2]]), num_lights=lights)
+    tints, dirt, gain = (jnp.asarray(rng.uniform(0.5, 1.5, shape)) for shape in ((4, 3), (2, 2, 1), (lights, 3)))
+
+    def plain(t, d, g):
+        return jnp.einsum("pc,d,k,pdkhwc->hwc", _path_tints(images.path_interfaces, t), d.reshape(-1), g.reshape(-1), stack)
+
+    ours = lambda t, d, g: dirt_image_model(images, t, d, g)  # noqa: E731
+    np.testing.assert_allclose(ours(tints, dirt, gain), plain(tints, dirt, gain), rtol=1e-12)
+    for argnum in range(3):
+        np.testing.assert_allclose(jax.jacfwd(ours, argnum)(tints, dirt, gain), jax.jacfwd(plain, argnum)(tints, dirt, gain), rtol=1e-10, atol=1e-12)
+        loss = lambda f: lambda *a: jnp.sum(f(*a) ** 2)  # noqa: E731
+        np.testing.assert_allclose(jax.grad(loss(ours), argnum)(tints, dirt, gain), jax.grad(loss(plain), argnum)(tints, dirt, gain), rtol=1e-10)
