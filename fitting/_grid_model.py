@@ -154,13 +154,12 @@ def grid_dirt_images(flare: GridFlareModel, dirt_shape, pixel_weight=None, block
     num_cells = rows * columns
     width, height = flare.resolution
     run = int(np.clip(DIRT_RUN_BYTES // (flare.num_paths * flare.layer_bytes), 1, num_cells))
-    weight = np.ones((height, width)) if pixel_weight is None else np.asarray(pixel_weight, np.float64)
-    gains = [None] if not per_light_colour else list(gain_basis(flare.num_lights))
+    weight = jnp.ones((height, width), jnp.float32) if pixel_weight is None else jnp.asarray(pixel_weight, jnp.float32)
+    gains = [None] if not per_light_colour else [jnp.asarray(g, jnp.float32) for g in gain_basis(flare.num_lights)]
     per_gain = []
     for gain in gains:
-        gain = None if gain is None else jnp.asarray(gain, jnp.float32)
         # every run as long as the first (the last one padded with empty cells): one compiled splat
-        runs = [np.asarray(_cell_blocks(flare, (rows, columns), jnp.asarray(first, jnp.int32), run, gain, jnp.asarray(weight, jnp.float32), block))
+        runs = [np.asarray(_cell_blocks(flare, (rows, columns), jnp.asarray(first, jnp.int32), run, gain, weight, block))
                 for first in range(0, num_cells, run)]
         per_gain.append(np.concatenate(runs, axis=1)[:, :num_cells].astype(np.float64))  # (P, D, h, w, 3)
     return DirtImages(

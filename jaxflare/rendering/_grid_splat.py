@@ -193,8 +193,8 @@ def subsample_values(setup, jobs: JobTable, records: RecordTable, total: Array, 
     """The sub-samples of ``num_tiles`` tiles from ``start_tile`` (``num_tiles * TILE`` of them,
     flat, in tile order): their layer, level, image position, RGB value (zero where they miss),
     hit mask, statistics slot, entrance weight where they hit, the value unclipped by the iris
-    and clear apertures, and where they cross the front vertex plane (mm). What a record or a job holds is read once per tile and shared by its
-    sub-samples; ``total`` (the sub-sample count) only feeds the run-time one that keeps shared
+    and clear apertures, and where they cross the front vertex plane (mm). What a record or a job
+    holds is read once per tile and shared by its sub-samples; ``total`` (the sub-sample count) only feeds the run-time one that keeps shared
     values in memory."""
     r, local, used = tile_lattice(records, start_tile, num_tiles)
     one = _runtime_one(total)

@@ -93,9 +93,13 @@ def _check_map(dirt_map: Array) -> Array:
         dirt_map = dirt_map[..., None]
     if dirt_map.ndim != 3 or dirt_map.shape[-1] not in (1, 3):
         raise ValueError(f"a dirt map must have shape (H, W, 1) or (H, W, 3), got {dirt_map.shape}")
-    if dirt_map.shape[0] < 2 or dirt_map.shape[1] < 2:
-        raise ValueError(f"a dirt map must be at least 2 x 2 pixels, got shape {dirt_map.shape}")
+    _check_size(dirt_map.shape)
     return dirt_map
+
+
+def _check_size(shape) -> None:
+    if len(shape) < 2 or shape[0] < 2 or shape[1] < 2:
+        raise ValueError(f"a dirt map must be at least 2 x 2 pixels, got shape {tuple(shape)}")
 
 
 def _bilinear_clamped(image: Array, column: Array, row: Array) -> Array:
@@ -138,7 +142,6 @@ def dirt_cell_taps(shape: tuple[int, int], xy_mm: Array, front_radius_mm) -> tup
     pairs shaped like ``xy_mm[..., 0]``. The transmission of a one-channel map ``d`` is
     ``sum_k d.flat[cell_k] * weight_k``, so a point's light splatted with ``weight_k`` into cell
     ``cell_k``'s image builds every one-hot map's image in one pass."""
-    if len(shape) != 2 or min(shape) < 2:
-        raise ValueError(f"a dirt map must be at least 2 x 2 pixels, got shape {tuple(shape)}")
+    _check_size(shape)
     column, row = _map_position(shape, jnp.asarray(xy_mm), front_radius_mm)
     return bilinear_taps(*shape, column, row, extend_edges=False)
