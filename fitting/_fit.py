@@ -442,40 +442,46 @@ def fit(
         free, frozen = eqx.partition(start, free_mask, is_leaf=lambda x: x is None)
         weights = [jnp.asarray(p.weight, jnp.float64)[..., None] for p in plates]
 
-        def pooled(k, image):  # weighted block sums of plate k
+        def pooled(k, image, weight):  # weighted block sums of plate k
             width, height = resolutions[k]
             shape = (height // block, block, width // block, block, image.shape[-1])
-            return (image * weights[k]).reshape(shape).sum(axis=(1, 3))
+            return (image * weight).reshape(shape).sum(axis=(1, 3))
 
-        targets = [pooled(k, jnp.asarray(np.where(p.weight[..., None] > 0, p.rgb, 0.0), jnp.float64)) for k, p in enumerate(plates)]
+        targets = [pooled(k, jnp.asarray(np.where(p.weight[..., None] > 0, p.rgb, 0.0), jnp.float64), weights[k]) for k, p in enumerate(plates)]
         target_norm = float(jnp.sqrt(sum(jnp.sum(t**2) for t in targets)))
         prior = jnp.asarray(dirt_prior, jnp.float64)
+        # what the residuals read, passed to the solver as its ``args``: closed over, the image
+        # stacks would be constants of every compiled step (XLA then folds transposes of them:
+        # seconds per compile on a 2K plate)
+        data = (forwards, targets, weights, grid_paths, [b.grid if isinstance(b.forward, FilmImages) else None for b in built])
 
-        def model_image(k, tints, dirt, gain, film=None):
+        def model_image(k, tints, dirt, gain, film, data):
+            forwards, _, weights, grid_paths, film_grids = data
             forward, gain = forwards[k], gain[gain_offsets[k] : gain_offsets[k + 1]] if "lights" in params else None
             if isinstance(forward, DirtImages):
                 return dirt_image_model(forward, tints, dirt, gain)
             if isinstance(forward, FilmImages):
-                fresnel = built[k].grid.path_fresnel(*film_arrays(layers, *film))
+                fresnel = film_grids[k].path_fresnel(*film_arrays(layers, *film))
                 return film_image_model(forward, fresnel.astype(jnp.float64), tints, gain)
             if isinstance(forward, GridFlareModel):
                 fresnel = None if film is None else forward.path_fresnel(*film_arrays(layers, *film))
-                return pooled(k, forward.image(_path_tints(grid_paths[k], tints), dirt, gain, fresnel).astype(jnp.float64))
+                return pooled(k, forward.image(_path_tints(grid_paths[k], tints), dirt, gain, fresnel).astype(jnp.float64), weights[k])
             if isinstance(forward, PathImages):
                 return path_image_model(forward, tints, gain)
-            return pooled(k, render_image(forward, tints, dirt, gain))
+            return pooled(k, render_image(forward, tints, dirt, gain), weights[k])
 
-        def data_residuals(tints, dirt, gain, film=None):
-            return jnp.concatenate([(model_image(k, tints, dirt, gain, film) - targets[k]).ravel() for k in range(len(plates))]) / target_norm
+        def data_residuals(tints, dirt, gain, film, data):
+            targets = data[1]
+            return jnp.concatenate([(model_image(k, tints, dirt, gain, film, data) - targets[k]).ravel() for k in range(len(plates))]) / target_norm
 
         def unpacked(free_params):
             combined = eqx.combine(free_params, frozen, is_leaf=lambda x: x is None)
             film = None if layers is None else film_values(layers, combined.film_logits)
             return (*combined.values(), film)
 
-        def residuals(free_params, _):
+        def residuals(free_params, data):
             tints, dirt, gain, film = unpacked(free_params)
-            parts = [data_residuals(tints, dirt, gain, film)]
+            parts = [data_residuals(tints, dirt, gain, film, data)]
             if "dirt" in params:
                 parts.append(math.sqrt(dirt_prior_weight) * (dirt - prior).ravel())
             if "coatings" in params:
@@ -490,7 +496,9 @@ def fit(
         # through per-cell image stacks the dirt is as linear and as cheap as the tints
         resplats = "dirt" in params and not all(isinstance(f, DirtImages) for f in forwards)
         dense = not resplats and num_free <= (DENSE_STACK_PARAMETERS if "dirt" in params else DENSE_PARAMETERS)
-        best, history, steps, converged, status = _solve(residuals, free, solver, rtol, atol, max_steps, progress, dense=dense, physical=unpacked)
+        best, history, steps, converged, status = _solve(
+            residuals, free, solver, rtol, atol, max_steps, progress, dense=dense, physical=unpacked, args=data
+        )
         tints, dirt, gain, film = unpacked(best)
         fitted_values = {name: value for name, value in (("coatings", tints), ("lights", gain)) if name in params}
         prior_weights = {"coatings": tint_prior_weight}
@@ -498,16 +506,16 @@ def fit(
             fitted_values.update(thickness=film[0], index=film[1])
             prior_weights.update(thickness=THICKNESS_PRIOR_WEIGHT / layers.thickness_nm**2, index=INDEX_PRIOR_WEIGHT)
 
-        def data_at(values):
+        def data_at(values, data):
             at_film = None if film is None else (values["thickness"], values["index"])
-            return data_residuals(values.get("coatings", tints), dirt, values.get("lights", gain), at_film)
+            return data_residuals(values.get("coatings", tints), dirt, values.get("lights", gain), at_film, data)
 
-        std, data_std = _standard_errors(data_at, fitted_values, prior_weights=prior_weights, residual_shape=[t.shape for t in targets])
+        std, data_std = _standard_errors(data_at, fitted_values, prior_weights=prior_weights, residual_shape=[t.shape for t in targets], data=data)
         tint_std, gain_std = std.get("coatings"), std.get("lights")
         tint_observable = data_std["coatings"] < OBSERVABLE_STD if "coatings" in data_std else None
         sensitivity = None
         if "dirt" in params:
-            grad = jax.grad(lambda d: sum(jnp.sum(model_image(k, tints, d, gain, film)) for k in range(len(plates))))(dirt)
+            grad = jax.grad(lambda d: sum(jnp.sum(model_image(k, tints, d, gain, film, data)) for k in range(len(plates))))(dirt)
             sensitivity = np.abs(np.asarray(grad))
             sensitivity = sensitivity / max(float(sensitivity.max()), 1e-300)
         tints, gain = np.asarray(tints), np.asarray(gain)
@@ -669,10 +677,10 @@ def _final_image(built: _BuiltModel, forward, scene, tints, dirt, gain, film=Non
     return np.asarray(render_image(forward, jnp.asarray(tints), None if dirt is None else jnp.asarray(dirt), jnp.ones((_num_lights(forward), 3)) if gain is None else gain))
 
 
-def _solve(residuals, free, solver: str, rtol: float, atol: float, max_steps: int, progress, dense: bool = False, physical=None):
+def _solve(residuals, free, solver: str, rtol: float, atol: float, max_steps: int, progress, dense: bool = False, physical=None, args=None):
     """Solve with optimistix (``optx.least_squares``, or ``optx.minimise`` for BFGS), wrapped in its
     best-so-far solver, so the parameters returned are the best seen even when the solver stops
-    early or a step goes astray. The solver's own verbose hook reports each step's loss, which
+    early or a step goes astray; ``residuals(y, args)``. The solver's own verbose hook reports each step's loss, which
     feeds ``progress`` and the loss history (the best loss after each step, the start first).
     Each step reports the loss at the point it evaluates, and the first step evaluates the start:
     the start's loss comes from there, not from a separate compilation of the model."""
@@ -689,13 +697,13 @@ def _solve(residuals, free, solver: str, rtol: float, atol: float, max_steps: in
     chosen = _solver(solver, rtol, atol, verbose=report, dense=dense, physical=physical)
     if solver == "bfgs":
         solution = optx.minimise(
-            lambda y, args: 0.5 * jnp.sum(residuals(y, args) ** 2), optx.BestSoFarMinimiser(chosen), free, max_steps=max_steps, throw=False
+            lambda y, args: 0.5 * jnp.sum(residuals(y, args) ** 2), optx.BestSoFarMinimiser(chosen), free, args, max_steps=max_steps, throw=False
         )
     else:
-        solution = optx.least_squares(residuals, optx.BestSoFarLeastSquares(chosen), free, max_steps=max_steps, throw=False)
+        solution = optx.least_squares(residuals, optx.BestSoFarLeastSquares(chosen), free, args, max_steps=max_steps, throw=False)
     result = solution.result
     steps = int(solution.stats["num_steps"])
-    initial = losses[0] if losses else float(0.5 * jnp.sum(residuals(free, None) ** 2))
+    initial = losses[0] if losses else float(0.5 * jnp.sum(residuals(free, args) ** 2))
     history = [initial]
     for loss in losses[:steps]:
         history.append(min(history[-1], loss) if math.isfinite(loss) else history[-1])
@@ -709,10 +717,10 @@ def _solve(residuals, free, solver: str, rtol: float, atol: float, max_steps: in
     return solution.value, history, steps, converged, status
 
 
-def _standard_errors(data_residuals, fitted: dict, *, prior_weights: dict, residual_shape=None) -> tuple[dict, dict]:
+def _standard_errors(data_residuals, fitted: dict, *, prior_weights: dict, residual_shape=None, data=None) -> tuple[dict, dict]:
     """Standard errors of the fitted parameters ``fitted`` (name -> physical values: tints,
-    gains, layer thicknesses and indices; ``data_residuals`` maps such a dict to the data
-    residuals): ``s^2 kappa (J^T J + W)^-1`` with the Jacobian ``J`` of the data residuals in
+    gains, layer thicknesses and indices; ``data_residuals(values, data)`` maps such a dict to the
+    data residuals): ``s^2 kappa (J^T J + W)^-1`` with the Jacobian ``J`` of the data residuals in
     the physical parameters, ``W`` the priors' weights (``prior_weights``, name -> a weight per
     entry or one for all: the loss's own Hessian, so a parameter the plate does not show keeps
     the prior's spread), ``s^2`` the residuals' mean square (the plate's noise and the model's own
@@ -731,12 +739,15 @@ def _standard_errors(data_residuals, fitted: dict, *, prior_weights: dict, resid
     def unflatten(x):
         return {n: part.reshape(shapes[n]) for n, part in zip(names, jnp.split(x, np.cumsum(sizes)[:-1]))}
 
-    residual_at = lambda x: data_residuals(unflatten(x))
-    r = residual_at(flat)
-    basis = jnp.eye(flat.size, dtype=flat.dtype)
-    # (p, n): memory p x n only; in batches, so that what a derivative shares (contractions of
-    # a model's image stacks with the fitted values) is made once a batch
-    columns = jax.lax.map(lambda e: jax.jvp(residual_at, (flat,), (e,))[1], basis, batch_size=32)
+    @eqx.filter_jit  # ``data`` an argument: closed over, its image stacks would be compiled in as constants
+    def residuals_and_columns(flat, data):
+        residual_at = lambda x: data_residuals(unflatten(x), data)  # noqa: E731
+        basis = jnp.eye(flat.size, dtype=flat.dtype)
+        # (p, n): memory p x n only; in batches, so that what a derivative shares (contractions of
+        # a model's image stacks with the fitted values) is made once a batch
+        return residual_at(flat), jax.lax.map(lambda e: jax.jvp(residual_at, (flat,), (e,))[1], basis, batch_size=32)
+
+    r, columns = residuals_and_columns(flat, data)
     data_normal = np.asarray(columns @ columns.T)  # the plate's information alone
     prior = np.concatenate([np.broadcast_to(np.asarray(prior_weights.get(n, 0.0), np.float64), (size,)).ravel() for n, size in zip(names, sizes)])
     normal = data_normal + np.diag(prior)

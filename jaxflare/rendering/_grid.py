@@ -26,6 +26,12 @@ Spectra: the band is split into ``M`` equal strata per path; each stratum's sub-
 sensor positions at its centre (interpolated between the traced wavelengths, linear in 1 / lambda^2)
 and carry the stratum's mean colour (the light's RGB response x the path's coated Fresnel factor,
 averaged over 160 wavelengths), so the colour integral is exact whatever ``M``.
+
+Extended lights (spheres, discs, a sun's disc): each vertex is also traced from two points of the
+light's disc, so each cell knows how its image moves with the point on the light (linearly). A
+path whose image the disc moves by at least a level pixel is drawn for the light's centre and
+convolved with the disc's image under its mean move (:mod:`._grid_blur`: noise free); a smaller
+move is sampled, each sub-sample at its own point of the disc.
 """
 
 from __future__ import annotations
@@ -42,6 +48,7 @@ from ..optics import EventTable
 from ..scenes import LightKind
 from ._grid_splat import (
     COLOUR_ROW,
+    LEVELS,
     RECORD_VALUES,
     SPLAT_SUBSAMPLES,
     SUB_NODE_CHOICES,
@@ -52,7 +59,9 @@ from ._grid_splat import (
     RecordTable,
     chunk_count,
     empty_grid_accumulators,
+    level_layout,
 )
+from ._grid_blur import blur_slots
 from ._grid_trace import TRACE_BLOCK, TRACE_CHUNK, TRACE_GRID
 from ._lights import light_rgb
 from ._records import front_cosine, front_vertex_plane_xy
@@ -87,6 +96,10 @@ class GridQuality:
     at its centre (its lateral colour shift x the irradiance gradient)."""
     max_side: int
     """Most sub-samples per cell side."""
+    blur: bool = True
+    """Draw an extended light's disc by convolving its paths' images (:mod:`._grid_blur`: noise
+    free); False samples the disc per sub-sample (a Kronecker point each: speckled where the disc
+    moves an image by many pixels)."""
     interleave: bool = True
     """Shift each wavelength sub-node's sub-sample lattice by its own Kronecker point, so that each
     can be up to twice sparser (fewer sub-samples); False centres every lattice in its cells (the
@@ -137,6 +150,12 @@ class GridJob:
     spacing_px: float = 0.7
     min_subsamples: int = 0
     interleave: bool = True
+    blur: bool = False
+    """An extended light whose disc may be drawn by convolution (:mod:`._grid_blur`)."""
+    blur_jacobian: np.ndarray | None = None
+    """Set when the job is traced: its image move per unit disc move (level px), None: sampled."""
+    blur_border: int = 0
+    """Set with ``blur_jacobian``: how far (level px) beyond the image its cells can still blur in."""
     row0: int = 0
 
     @property
@@ -401,6 +420,7 @@ def job_table(setup, jobs: list[GridJob], path_fresnel: jax.Array, band: tuple[f
         weight=jnp.asarray([job.weight for job in jobs_padded], f32),
         interleave=jnp.asarray([int(job.interleave) for job in jobs_padded], jnp.int32),
         colour=colour,
+        blur=blur_slots(jobs_padded, [job.blur_jacobian for job in jobs] + [None] * (size - len(jobs)), *setup.resolution, LEVELS, level_layout),
     )
 
 
@@ -460,7 +480,8 @@ def splat_prepared(setup, prepared: PreparedSplat | None, num_layers: int, num_s
     """The accumulated packed images and per-slot statistics of prepared records. Differentiable
     in what ``setup`` holds (tints, dirt, light gains): the record tables are fixed."""
     width, height = setup.resolution
-    acc = empty_grid_accumulators(num_layers, num_slots, width, height)
+    blur = None if prepared is None else prepared.jobs.blur
+    acc = empty_grid_accumulators(num_layers, num_slots, width, height, 1 if blur is None else blur.size)
     if prepared is None:
         return acc
     return SPLAT_SUBSAMPLES(

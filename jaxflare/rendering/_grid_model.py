@@ -40,7 +40,7 @@ from ..optics import EventTable, on_axis_fresnel
 from ..scenes import Scene, load_scene
 from ._grid import band_averaging, job_colours, job_table
 from ._grid_plan import GridPlan, plan_grid, prepare_grid
-from ._grid_splat import COMPOSE_LEVELS, DirtCells, JobTable, RecordTable, empty_grid_accumulators, packed_shape, splat_subsamples
+from ._grid_splat import DirtCells, JobTable, RecordTable, compose_layers, empty_grid_accumulators, packed_shape, splat_subsamples
 from ._lights import LightArrays
 from ._quality import radiance_scale
 from ._step import RenderSetup
@@ -121,6 +121,11 @@ class GridFlareModel(eqx.Module):
         rows, columns = packed_shape(*self.resolution)
         return 4 * 3 * rows * columns
 
+    @property
+    def atlas_bytes(self) -> int:
+        """Bytes of the blurred jobs' slots (:mod:`._grid_blur`; one copy per dirt cell of a run)."""
+        return 0 if self.jobs.blur is None else 4 * 3 * self.jobs.blur.size
+
     def path_fresnel(self, coating_indices: Float[Array, "S L"], coating_thicknesses_nm: Float[Array, "S L"]) -> Float[Array, "P Lw"]:
         """Each flare path's on-axis coated Fresnel factor on the spectral grid for the lens with
         these coating arrays (as :attr:`jaxflare.Lens.coating_indices` and
@@ -150,9 +155,10 @@ class GridFlareModel(eqx.Module):
         setup = dataclasses.replace(setup, path_tint=jnp.asarray(path_tint).astype(dtype), effects=effects)
         width, height = self.resolution
         layers = (self.num_paths if per_path else 1) * (1 if dirt_cells is None else dirt_cells.count)
-        acc = empty_grid_accumulators(layers, self.num_paths, width, height)
+        atlas = 1 if jobs.blur is None else jobs.blur.size * (1 if dirt_cells is None else dirt_cells.count)
+        acc = empty_grid_accumulators(layers, self.num_paths, width, height, atlas)
         acc = splat_subsamples(setup, jobs, self.table, acc, self.total, self.first, self.chunks, dirt_cells)
-        return COMPOSE_LEVELS(acc.buffer, width, height) * self.to_radiance
+        return compose_layers(acc, jobs, width, height, 0 if dirt_cells is None else dirt_cells.count) * self.to_radiance
 
     def image(
         self, path_tint: Float[Array, "P 3"], dirt: Float[Array, "Hd Wd C"] | None = None, light_gain: Float[Array, "NL 3"] | None = None,

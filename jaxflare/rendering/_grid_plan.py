@@ -33,7 +33,8 @@ from ._grid import (
     traced_wavelengths,
 )
 from ._grid_cells import cell_pieces, round_sub_nodes, summarise_cells
-from ._grid_splat import COMPOSE_LEVELS, LEVELS
+from ._grid_blur import BLUR_MAX_PX, BLUR_MIN_PX, BLUR_SPACING, blur_border, light_jacobian_px
+from ._grid_splat import COMPOSE_LAYERS, COMPOSE_LEVELS, LEVELS
 from ._grid_trace import SENSOR
 from ._lights import LightArrays, light_arrays
 from ._plan import CullingPlan, LayerPlan, assign_layers, choose_paths, light_field_angle_deg, path_tints, render_settings
@@ -356,12 +357,14 @@ def plan_grid(
         du, dv = (c1 - c0) * pilot_cell / cells, (r1 - r0) * pilot_cell / cells
         for light in range(num_lights):
             extended = light_is_extended(lights, light) and info["motion"] / scale_px >= MIN_MOTION_PX
-            blur_area = math.pi * (info["motion"] / scale_px) ** 2 if extended else 0.0
+            blur = extended and grid.blur and BLUR_MIN_PX <= info["motion"] / scale_px <= BLUR_MAX_PX
+            blur_area = math.pi * (info["motion"] / scale_px) ** 2 if extended and not blur else 0.0
             jobs.append(
                 GridJob(
                     path=k, slot=k, light=light, layer=int(layers.layer_of_path[k]), level=level, passes=passes[k], domain=(u0, v0, du, dv),
                     cells=cells, step=0.5 if extended else 0.0, sub_nodes=sub_nodes, max_side=grid.max_side, spacing_px=grid.spacing_px,
-                    min_subsamples=int(BLUR_DENSITY * blur_area), interleave=grid.interleave,
+                    min_subsamples=int(BLUR_DENSITY * blur_area), interleave=grid.interleave, blur=blur,
+                    blur_border=blur_border(np.full((2, 2), info["motion"] / scale_px / math.sqrt(2))) if blur else 0,
                 )
             )
     setup = grid_setup(
@@ -397,6 +400,16 @@ def prepare_grid(plan: GridPlan) -> PreparedGrid:
     summaries = [
         summarise_cells(job, host_rows, len(plan.wavelengths), lens32, plan.pixel_pitch_mm, width, height, distortion) for job in plan.jobs
     ]
+    for job, summary in zip(plan.jobs, summaries):
+        jacobian = None
+        if job.blur:
+            jacobian = light_jacobian_px(job, host_rows, len(plan.wavelengths), summary.passing, plan.pixel_pitch_mm, LEVELS[job.level])
+            if jacobian is not None and not np.max(np.linalg.norm(jacobian, axis=1)) <= BLUR_MAX_PX:
+                jacobian = None
+        job.blur_jacobian = jacobian
+        job.blur_border = 0 if jacobian is None else max(job.blur_border, blur_border(jacobian))
+        if jacobian is not None:  # the disc's image smooths a lattice much finer than its narrowest width
+            job.spacing_px = max(job.spacing_px, BLUR_SPACING * float(np.linalg.svd(jacobian, compute_uv=False)[-1]))
     pieces = [
         cell_pieces(job, s, lens32, width, height, distortion, plan.grid.fringe_px, job.sub_nodes, plan.grid.colour_error, plan.grid.edge_side)
         for job, s in zip(plan.jobs, summaries)
@@ -411,7 +424,9 @@ def grid_layers(setup: RenderSetup, plan: GridPlan, prepared: PreparedGrid):
     ``plan.setup``); the grid itself (which cells, how finely) stays as planned."""
     width, height = setup.resolution
     acc = splat_prepared(setup, prepared.prepared, plan.layers.count, len(plan.paths))
-    return COMPOSE_LEVELS(acc.buffer, width, height), acc
+    if prepared.prepared is None:
+        return COMPOSE_LEVELS(acc.buffer, width, height), acc
+    return COMPOSE_LAYERS(acc, prepared.prepared.jobs, width, height), acc
 
 
 def run_grid(plan: GridPlan):

@@ -24,7 +24,9 @@ sub-samples per render structure.
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -33,6 +35,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ..optics import inside_iris
+from ._grid_blur import BlurSlots, add_blurred_slots
 from ._grid_trace import COS, FLUX, FRONT, HOOD, MARGIN, MAX_STOP_PASSES, NUM_QUANTITIES, SENSOR, STOP, THROUGHPUT, VALID, VISIBLE
 from ._records import image_position
 from ._splat import splat
@@ -107,6 +110,9 @@ class JobTable(eqx.Module):
     """Per wavelength sub-node of every sub-node choice (:data:`._grid_cells.SUB_NODE_OFFSETS`):
     the light's RGB x (Schlick model) the path's on-axis coated Fresnel factor, averaged over the
     sub-node's stratum of the band."""
+    blur: BlurSlots | None = None
+    """The blurred jobs' slots and kernels (:mod:`._grid_blur`); None: every extended light's
+    disc is sampled per sub-sample."""
 
 
 class RecordTable(eqx.Module):
@@ -189,13 +195,39 @@ def tile_lattice(records: RecordTable, start_tile: Array, num_tiles: int):
     return r, local, local < (side * side)[:, None]
 
 
-def subsample_values(setup, jobs: JobTable, records: RecordTable, total: Array, start_tile: Array, num_tiles: int):
+class Subsamples(NamedTuple):
+    """What :func:`subsample_values` gives per sub-sample (flat, in tile order)."""
+
+    layer: Array
+    level: Array
+    column: Array
+    """Image position (full-resolution pixels; pixel centres at integer + 0.5)."""
+    row: Array
+    value: Array
+    """RGB (N, 3), zero where it misses the image."""
+    hit: Array
+    """It gets through and lands on the image (its statistics count)."""
+    drawn: Array
+    """``hit`` and splatted into its layer (not into a blur slot)."""
+    slot: Array
+    """The statistics slot."""
+    share: Array
+    """Its entrance weight where it hits."""
+    unclipped: Array
+    """Its value unclipped by the iris and clear apertures (the culling bound)."""
+    front_xy: Array
+    """Where it crosses the front vertex plane (mm)."""
+    job: Array
+    blur_value: Array
+    """RGB where it gets through and lands in its job's blur slot (zero unless ``blur``)."""
+
+
+def subsample_values(setup, jobs: JobTable, records: RecordTable, total: Array, start_tile: Array, num_tiles: int, blur: bool = False) -> Subsamples:
     """The sub-samples of ``num_tiles`` tiles from ``start_tile`` (``num_tiles * TILE`` of them,
-    flat, in tile order): their layer, level, image position, RGB value (zero where they miss),
-    hit mask, statistics slot, entrance weight where they hit, the value unclipped by the iris
-    and clear apertures, and where they cross the front vertex plane (mm). What a record or a job
-    holds is read once per tile and shared by its sub-samples; ``total`` (the sub-sample count) only feeds the run-time one that keeps shared
-    values in memory."""
+    flat, in tile order; see :class:`Subsamples`). What a record or a job holds is read once per
+    tile and shared by its sub-samples; ``total`` (the sub-sample count) only feeds the run-time
+    one that keeps shared values in memory. With ``blur``, the sub-samples of blurred jobs
+    (``jobs.blur``) are drawn at the light's node, for their slots (:mod:`._grid_blur`)."""
     r, local, used = tile_lattice(records, start_tile, num_tiles)
     one = _runtime_one(total)
 
@@ -227,8 +259,12 @@ def subsample_values(setup, jobs: JobTable, records: RecordTable, total: Array, 
     rho = jnp.sqrt(inner**2 + k1 * (outer**2 - inner**2))
     phi = angle0 + k2 * span
     node = jobs.node[job]
-    offset_s = jnp.where((jobs.step[job] > 0)[:, None], rho * jnp.cos(phi) - node[:, :1], 0.0)
-    offset_t = jnp.where((jobs.step[job] > 0)[:, None], rho * jnp.sin(phi) - node[:, 1:], 0.0)
+    sampled = jobs.step[job] > 0
+    if blur:
+        blurred = jobs.blur.base[job] >= 0
+        sampled = sampled & ~blurred
+    offset_s = jnp.where(sampled[:, None], rho * jnp.cos(phi) - node[:, :1], 0.0)
+    offset_t = jnp.where(sampled[:, None], rho * jnp.sin(phi) - node[:, 1:], 0.0)
     move_s = values[:, None, 4 * NUM_QUANTITIES : 4 * NUM_QUANTITIES + LINEAR]
     move_t = values[:, None, 4 * NUM_QUANTITIES + LINEAR :]
     moved = keep(q[..., :LINEAR] + offset_s[..., None] * move_s + offset_t[..., None] * move_t)
@@ -263,15 +299,28 @@ def subsample_values(setup, jobs: JobTable, records: RecordTable, total: Array, 
     column, row = image_position(setup, moved[..., SENSOR : SENSOR + 2].reshape(flat, 2))
     width, height = setup.resolution
     on_sensor = (column >= 0) & (column < width) & (row >= 0) & (row < height)
-    reaches = used.reshape(flat) & on_sensor & jnp.repeat(setup.path_enabled[path], TILE)
+    enabled = used.reshape(flat) & jnp.repeat(setup.path_enabled[path], TILE)
+    reaches = enabled & on_sensor
     hit = reaches & valid.reshape(flat)
+    per_sample = lambda x: jnp.repeat(x, TILE)  # noqa: E731
+    if blur:  # the slot reaches its border beyond the image
+        reach = per_sample(jobs.blur.border[job] * jnp.asarray(np.asarray(LEVELS, np.float32))[jobs.level[job]])
+        in_slot = (column >= -reach) & (column < width + reach) & (row >= -reach) & (row < height + reach)
+        into_slot = enabled & in_slot & valid.reshape(flat) & per_sample(blurred)
+        blur_value = jnp.where(into_slot[:, None], value, 0.0)
+        drawn = hit & ~per_sample(blurred)
+    else:
+        blur_value = jnp.zeros_like(value)
+        drawn = hit
     # what the cell could carry at most: clipped by nothing but the image (the culling bound)
     unclipped = jnp.where((reaches & (q[..., VALID] > 0.999).reshape(flat))[:, None], value, 0.0)
     value = jnp.where(hit[:, None], value, 0.0)
-    per_sample = lambda x: jnp.repeat(x, TILE)  # noqa: E731
     share = jnp.where(hit, per_sample(share), 0.0)
     front_xy = q[..., FRONT : FRONT + 2].reshape(flat, 2)
-    return per_sample(jobs.layer[job]), per_sample(jobs.level[job]), column, row, value, hit, per_sample(jobs.slot[job]), share, unclipped, front_xy
+    return Subsamples(
+        layer=per_sample(jobs.layer[job]), level=per_sample(jobs.level[job]), column=column, row=row, value=value, hit=hit, drawn=drawn,
+        slot=per_sample(jobs.slot[job]), share=share, unclipped=unclipped, front_xy=front_xy, job=per_sample(job), blur_value=blur_value,
+    )
 
 
 def _level_position(level: Array, column: Array, row: Array, width: int, height: int):
@@ -294,6 +343,8 @@ class GridAccumulators(eqx.Module):
     """Entrance-area weight of the sub-samples that reached the image (per path, summed over lights)."""
     path_bound: Float[Array, "P 3"]
     """What the path's cells could carry if the iris and the clear apertures clipped nothing."""
+    atlas: Float[Array, "A 3"]
+    """The blurred jobs' slots, flat (:class:`._grid_blur.BlurSlots`; one black pixel when none)."""
 
 
 class DirtCells(eqx.Module):
@@ -307,15 +358,66 @@ class DirtCells(eqx.Module):
     """Cells in the run (a run past the map's last cell has empty layers there)."""
 
 
-def _splat_dirt_cells(buffer, cells: DirtCells, front_radius_mm, layer, x, y, value, hit, front_xy):
+def _splat_dirt_cells(buffer, atlas, slots: BlurSlots | None, cells: DirtCells, front_radius_mm, s: Subsamples, x, y):
     """Each sub-sample's value, times the weight with which :func:`dirt_transmission` reads each of
     its four dirt cells, into layer ``layer * cells.count + (cell - cells.first)`` (cells outside
-    the run are dropped)."""
-    for cell, weight in dirt_cell_taps(cells.shape, front_xy, front_radius_mm):
+    the run are dropped), or into the cell's copy of its blur slot (``slots``)."""
+    for cell, weight in dirt_cell_taps(cells.shape, s.front_xy, front_radius_mm):
         local = cell - cells.first
         inside = (local >= 0) & (local < cells.count)
-        buffer = splat(buffer, layer * cells.count + jnp.clip(local, 0, cells.count - 1), x, y, value * weight[:, None], hit & inside)
-    return buffer
+        local = jnp.clip(local, 0, cells.count - 1)
+        buffer = splat(buffer, s.layer * cells.count + local, x, y, s.value * weight[:, None], s.drawn & inside)
+        if slots is not None:
+            atlas = _splat_slots(atlas, slots, s, s.blur_value * weight[:, None], inside & jnp.any(s.blur_value != 0.0, axis=-1), local * slots.size)
+    return buffer, atlas
+
+
+def _splat_slots(atlas: Array, slots: BlurSlots, s: Subsamples, value: Array, into: Array, offset: Array | int = 0) -> Array:
+    """Blurred jobs' sub-samples (``value`` where ``into``) into their slots, bilinear at their
+    level, offset by the border; ``offset`` (atlas pixels) picks a copy of the atlas (a dirt cell)."""
+    job = s.job
+    scale = jnp.asarray(np.asarray(LEVELS, np.float32))[s.level]
+    border = slots.border[job]
+    slot_w, slot_h = slots.width[job], slots.height[job]
+    x = jnp.clip(s.column / scale + border, 0.5, slot_w - 0.5) - 0.5
+    y = jnp.clip(s.row / scale + border, 0.5, slot_h - 0.5) - 0.5
+    x0, y0 = jnp.floor(x), jnp.floor(y)
+    fx, fy = x - x0, y - y0
+    outside = atlas.shape[0]
+    for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        xi = jnp.clip(x0.astype(jnp.int32) + dx, 0, slot_w - 1)
+        yi = jnp.clip(y0.astype(jnp.int32) + dy, 0, slot_h - 1)
+        index = jnp.where(into, offset + slots.base[job] + yi * slot_w + xi, outside)
+        atlas = atlas.at[index].add((value * w[:, None]).astype(atlas.dtype), mode="drop")
+    return atlas
+
+
+def _splat_layers_and_slots(flat: Array, buffer_shape: tuple, slots: BlurSlots, s: Subsamples, x: Array, y: Array) -> Array:
+    """:func:`._splat.splat` of the drawn sub-samples into their layers (packed position ``x``,
+    ``y``) and of the blurred jobs' sub-samples into their slots, in one scatter per bilinear tap:
+    ``flat`` holds the packed layers (``buffer_shape``), then the atlas."""
+    num_layers, rows, columns, _ = buffer_shape
+    job = s.job
+    blurred = slots.base[job] >= 0
+    border = slots.border[job]
+    slot_w, slot_h = slots.width[job], slots.height[job]
+    scale = jnp.asarray(np.asarray(LEVELS, np.float32))[s.level]
+    px = jnp.where(blurred, jnp.clip(s.column / scale + border, 0.5, slot_w - 0.5), x) - 0.5
+    py = jnp.where(blurred, jnp.clip(s.row / scale + border, 0.5, slot_h - 0.5), y) - 0.5
+    origin = jnp.where(blurred, num_layers * rows * columns + slots.base[job], s.layer * rows * columns)
+    stride = jnp.where(blurred, slot_w, columns)
+    last_x, last_y = jnp.where(blurred, slot_w - 1, columns - 1), jnp.where(blurred, slot_h - 1, rows - 1)
+    value = jnp.where(blurred[:, None], s.blur_value, s.value)
+    into = jnp.where(blurred, jnp.any(s.blur_value != 0.0, axis=-1), s.drawn)
+    x0, y0 = jnp.floor(px), jnp.floor(py)
+    fx, fy = px - x0, py - y0
+    outside = flat.shape[0]
+    for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        xi = jnp.clip(x0.astype(jnp.int32) + dx, 0, last_x)
+        yi = jnp.clip(y0.astype(jnp.int32) + dy, 0, last_y)
+        index = jnp.where(into, origin + yi * stride + xi, outside)
+        flat = flat.at[index].add((value * w[:, None]).astype(flat.dtype), mode="drop")
+    return flat
 
 
 @eqx.debug.assert_max_traces(max_traces=None)  # counts compilations: tests catch retracing with get_num_traces
@@ -329,27 +431,40 @@ def splat_subsamples(
     layer ``l`` becomes ``dirt_cells.count`` layers ``l * count + k``: the images of the one-hot
     maps of the run's cells, all in one pass over the sub-samples."""
     width, height = setup.resolution
+    blur = jobs.blur is not None
+    flat_layers = blur and dirt_cells is None  # the packed layers and the atlas as one flat array
+    layer_pixels = acc.buffer.size // 3
 
-    def body(c, acc):
-        layer, level, column, row, value, hit, slot, share, unclipped, front_xy = subsample_values(
-            setup, jobs, records, total, chunk_first[c], TILES_PER_CHUNK
-        )
-        x, y = _level_position(level, column, row, width, height)
-        if dirt_cells is None:
-            buffer = splat(acc.buffer, layer, x, y, value, hit)
+    def body(c, carry):
+        acc, flat = carry
+        s = subsample_values(setup, jobs, records, total, chunk_first[c], TILES_PER_CHUNK, blur=blur)
+        x, y = _level_position(s.level, s.column, s.row, width, height)
+        buffer, atlas = acc.buffer, acc.atlas
+        if flat_layers:
+            flat = _splat_layers_and_slots(flat, acc.buffer.shape, jobs.blur, s, x, y)
+        elif dirt_cells is None:
+            buffer = splat(acc.buffer, s.layer, x, y, s.value, s.drawn)
         else:
-            buffer = _splat_dirt_cells(acc.buffer, dirt_cells, setup.front.radius_mm, layer, x, y, value, hit, front_xy)
-        return GridAccumulators(
+            buffer, atlas = _splat_dirt_cells(acc.buffer, acc.atlas, jobs.blur, dirt_cells, setup.front.radius_mm, s, x, y)
+        acc = GridAccumulators(
             buffer=buffer,
-            path_energy=acc.path_energy.at[slot].add(value),
-            path_hits=acc.path_hits.at[slot].add(jnp.where(hit, 1.0, 0.0)),
-            path_weight=acc.path_weight.at[slot].add(share),
-            path_bound=acc.path_bound.at[slot].add(unclipped),
+            path_energy=acc.path_energy.at[s.slot].add(s.value),
+            path_hits=acc.path_hits.at[s.slot].add(jnp.where(s.hit, 1.0, 0.0)),
+            path_weight=acc.path_weight.at[s.slot].add(s.share),
+            path_bound=acc.path_bound.at[s.slot].add(s.unclipped),
+            atlas=atlas,
         )
+        return acc, flat
 
+    flat = jnp.concatenate([acc.buffer.reshape(-1, 3), acc.atlas]) if flat_layers else jnp.zeros((1, 3), acc.buffer.dtype)
     # a loop of static length (the bucketed chunk table) whose padding chunks are skipped at run
     # time: reverse-mode differentiable, unlike a loop to the dynamic ``chunks``
-    return jax.lax.fori_loop(0, chunk_first.shape[0], lambda c, acc: jax.lax.cond(c < chunks, body, lambda c, acc: acc, c, acc), acc)
+    acc, flat = jax.lax.fori_loop(
+        0, chunk_first.shape[0], lambda c, carry: jax.lax.cond(c < chunks, body, lambda c, carry: carry, c, carry), (acc, flat)
+    )
+    if flat_layers:
+        acc = dataclasses.replace(acc, buffer=flat[:layer_pixels].reshape(acc.buffer.shape), atlas=flat[layer_pixels:])
+    return acc
 
 
 SPLAT_SUBSAMPLES = eqx.filter_jit(splat_subsamples)
@@ -380,7 +495,22 @@ def compose_levels(buffer: Array, width: int, height: int) -> Array:
 COMPOSE_LEVELS = jax.jit(compose_levels, static_argnums=(1, 2))
 
 
-def empty_grid_accumulators(num_layers: int, num_paths: int, width: int, height: int) -> GridAccumulators:
+def compose_layers(acc: GridAccumulators, jobs: JobTable, width: int, height: int, dirt_cells: int = 0) -> Array:
+    """The full-resolution layers (Y, H, W, 3) of a splat: the blurred jobs' slots convolved and
+    added to their layers, then every level composed (:func:`compose_levels`). ``dirt_cells``:
+    the splat drew that many one-hot dirt cells per layer (``DirtCells.count``; each its own copy
+    of the atlas, layer ``l`` becoming ``l * count + k``)."""
+    buffer = acc.buffer
+    if jobs.blur is not None:
+        copies = max(dirt_cells, 1)
+        buffer = add_blurred_slots(buffer, acc.atlas.reshape(copies, jobs.blur.size, 3), jobs.blur, jobs.layer, width, height, level_layout)
+    return compose_levels(buffer, width, height)
+
+
+COMPOSE_LAYERS = eqx.filter_jit(compose_layers)
+
+
+def empty_grid_accumulators(num_layers: int, num_paths: int, width: int, height: int, atlas_size: int = 1) -> GridAccumulators:
     h, w = packed_shape(width, height)
     return GridAccumulators(
         buffer=jnp.zeros((num_layers, h, w, 3), jnp.float32),
@@ -388,6 +518,7 @@ def empty_grid_accumulators(num_layers: int, num_paths: int, width: int, height:
         path_hits=jnp.zeros(num_paths, jnp.float32),
         path_weight=jnp.zeros(num_paths, jnp.float32),
         path_bound=jnp.zeros((num_paths, 3), jnp.float32),
+        atlas=jnp.zeros((max(atlas_size, 1), 3), jnp.float32),
     )
 
 
