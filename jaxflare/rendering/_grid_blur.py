@@ -40,6 +40,9 @@ BLUR_MAX_PX = 128.0
 BLUR_SPACING = 0.2
 """A blurred job's sub-sample spacing may grow to this fraction of the narrowest half-width of its
 disc's image: the kernel smooths the lattice's ripple (see :func:`disc_kernel`)."""
+FFT_NOISE_FLOOR = 1e-5
+"""Relative to a slot's brightest pixel (before the convolution, per channel): float32 FFT
+convolution leaves about 1e-7 of it everywhere; below this a convolved pixel is rounding."""
 KERNEL_SUPERSAMPLING = 16
 """Points per pixel side when a kernel's ellipse is rasterised."""
 MIN_KERNEL_WIDTH_PX = 0.25
@@ -172,7 +175,8 @@ def blur_slots(jobs, jacobians: list, width: int, height: int, levels: tuple[int
 def blurred_slots(atlas: Float[Array, "A 3"], slots: BlurSlots, width: int, height: int, level_layout) -> list:
     """Per group, every slot of ``atlas`` convolved with its kernel (FFT; the border keeps the
     circular convolution from wrapping into the image) and cropped to its level's image:
-    (count, h, w, 3). Clipped at zero (the FFT's rounding, ~1e-7 of the peak)."""
+    (count, h, w, 3). Values below :data:`FFT_NOISE_FLOOR` of the slot's peak (per channel) are
+    the FFT's rounding, set to zero (so is anything negative)."""
     layout = level_layout(width, height)
     images = []
     for (level_index, border, count, offset), kernels in zip(slots.groups, slots.kernels):
@@ -184,7 +188,10 @@ def blurred_slots(atlas: Float[Array, "A 3"], slots: BlurSlots, width: int, heig
         padded = jnp.roll(padded, (-border, -border), axis=(1, 2))  # index 0: no move
         spectrum = jnp.fft.rfft2(slot_images, axes=(1, 2)) * jnp.fft.rfft2(padded, axes=(1, 2))[..., None]
         blurred = jnp.fft.irfft2(spectrum, s=(hs, ws), axes=(1, 2))[:, border : border + h, border : border + w]
-        images.append(jnp.maximum(blurred, 0.0))
+        # the FFT's rounding spreads ~1e-7 of a slot's peak over its whole image (along the peak's
+        # row and column): a core 1e7 times brighter than the flares would lay lines across them
+        floor = FFT_NOISE_FLOOR * jnp.max(jnp.abs(slot_images), axis=(1, 2), keepdims=True)
+        images.append(jnp.where(blurred > floor, blurred, 0.0))
     return images
 
 
