@@ -16,7 +16,10 @@ the cell's area over the entrance disc's, times the light node's weight, times t
 colour (the light's colour and the path's coated Fresnel factor averaged over its wavelength
 stratum). It is splatted with the one bilinear splat (:func:`._splat.splat`) into its layer at
 the path's image level (a full, half, quarter ... resolution image: smooth, dim ghosts are drawn
-coarser and upsampled).
+coarser and upsampled). A sub-sample of a *blurred* job (:mod:`._grid_blur`: the light's disc
+moves its path's image by a level pixel or more) stays at the light's centre and is splatted into
+the job's slot instead, which is convolved with the disc's image when the layers are composed
+(:func:`compose_layers`).
 
 Everything is float32 with fixed shapes: one compiled loop over chunks of :data:`SUBSAMPLE_CHUNK`
 sub-samples per render structure.
