@@ -64,7 +64,7 @@ from ._grid_model import (
     grid_dirt_images,
     grid_film_images,
     grid_interfaces,
-    grid_path_images,
+    grid_path_images_and_full,
 )
 from ._levenberg_marquardt import LevenbergMarquardt
 from ._physical_termination import GaussNewton
@@ -605,6 +605,9 @@ class _BuiltModel:
     """What the fit evaluates: a GridFlareModel (dirt fitted), PathImages or FixedSamples."""
     grid: GridFlareModel | None
     samples: int
+    full_images: np.ndarray | None = None
+    """Per-path full-resolution images on the host (P, K, H, W, 3) float32, where the forward
+    model's own stack does not keep them: the final render is their tinted sum."""
 
 
 def _plate_model(scene, plate: Plate, fixed, model: str, params, block: int, *, samples, seed, method, paths, grid_quality, dirt_shape=(16, 16)) -> _BuiltModel:
@@ -626,7 +629,8 @@ def _plate_model(scene, plate: Plate, fixed, model: str, params, block: int, *, 
             small = film_images_bytes(grid_flare, block, per_light_colour=per_light) <= PATH_IMAGE_BYTES
             forward = grid_film_images(grid_flare, plate.weight, block, per_light_colour=per_light) if small else grid_flare
         else:
-            forward = grid_path_images(grid_flare, plate.weight, block, per_light_colour=per_light)
+            forward, full = grid_path_images_and_full(grid_flare, plate.weight, block, per_light_colour=per_light)
+            return _BuiltModel(forward, grid_flare, grid_flare.subsamples, full_images=full if forward.full_images is None else None)
         return _BuiltModel(forward, grid_flare, grid_flare.subsamples)
     if fixed is not None:
         samples = fixed.samples if isinstance(fixed, PathImages) else int(fixed.records.path.shape[0])
@@ -668,6 +672,14 @@ def _final_image(built: _BuiltModel, forward, scene, tints, dirt, gain, film=Non
         return np.asarray(_grid_image(built.grid, path_tint, None if dirt is None else jnp.asarray(dirt), gain, fresnel), np.float64)
     if isinstance(forward, PathImages) and forward.full_images is not None:
         return np.asarray(path_image_model(forward, jnp.asarray(tints), gain, full=True))
+    if isinstance(forward, PathImages) and built.full_images is not None:  # a tinted sum on the host, path by path
+        path_tint = np.asarray(_path_tints(jnp.asarray(forward.path_interfaces), jnp.asarray(tints)), np.float32)
+        weights = np.ones(1, np.float32) if built.full_images.shape[1] == 1 else np.asarray(gain, np.float32).reshape(-1)
+        image = np.zeros(built.full_images.shape[2:], np.float32)
+        for p in range(built.full_images.shape[0]):
+            for k, w in enumerate(weights):
+                image += built.full_images[p, k] * (w * path_tint[p])
+        return image.astype(np.float64)
     if built.grid is not None:
         path_tint = _path_tints(jnp.asarray(grid_interfaces(built.grid)), jnp.asarray(tints))
         return np.asarray(_grid_image(built.grid, path_tint, None if dirt is None else jnp.asarray(dirt), gain), np.float64)

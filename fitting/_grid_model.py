@@ -56,6 +56,15 @@ def grid_path_images(flare: GridFlareModel, pixel_weight=None, block: int = 1, *
     """Each flare path's grid image (unit tints, the scene's dirt map), weighted by
     ``pixel_weight`` and summed over ``block`` x ``block`` pixels; the full-resolution images are
     kept when they fit in :data:`~._forward.FULL_IMAGE_BYTES` (float32)."""
+    return grid_path_images_and_full(flare, pixel_weight, block, per_light_colour=per_light_colour)[0]
+
+
+def grid_path_images_and_full(
+    flare: GridFlareModel, pixel_weight=None, block: int = 1, *, per_light_colour: bool = False
+) -> tuple[PathImages, np.ndarray]:
+    """:func:`grid_path_images` and the full-resolution images it pooled, (P, K, H, W, 3) float32
+    on the host (a fit's final render is their tinted sum, however large: re-splatting a 2K
+    production grid took 3 minutes)."""
     _check_block(flare, block)
     width, height = flare.resolution
     full = np.asarray(_path_images(flare, per_light_colour), np.float32)  # (P, K, H, W, 3)
@@ -66,7 +75,7 @@ def grid_path_images(flare: GridFlareModel, pixel_weight=None, block: int = 1, *
         images=jnp.asarray(images), full_images=jnp.asarray(full) if keep_full else None, path_interfaces=jnp.asarray(grid_interfaces(flare)),
         block=block, resolution=(width, height), num_interfaces=int(flare.setup.lens.num_interfaces), num_lights=flare.num_lights,
         samples=flare.subsamples, seed=0, method="grid", quality=flare.quality, paths=flare.paths,
-    )
+    ), full
 
 
 class FilmImages(eqx.Module):

@@ -146,3 +146,17 @@ def test_plates_no_flare_can_match_are_refused_before_the_model_is_built(monkeyp
             fitting.fit(SCENE, plate, params=("coatings",))
     noisy = rgb + np.random.default_rng(0).normal(0, 0.005, rgb.shape)  # small negative values of noise are fine
     fitting._plate.check_fittable(fitting.Plate(rgb=noisy, weight=np.ones((48, 64)), source="noisy.exr", layer=""))
+
+
+def test_final_render_of_a_plate_too_large_to_keep_in_the_stack_is_the_tinted_sum(monkeypatch):
+    """Where the path-image stack cannot keep its full-resolution images (FULL_IMAGE_BYTES, here
+    set to 0), the fit's render is still their tinted sum (kept on the host), not a re-splat of the
+    grid: equal to the render of a fit that kept them."""
+    rgb = grid_plate(with_tints(SCENE, TRUE_TINTS))
+    plate = fitting.Plate(rgb=np.asarray(rgb, np.float64), weight=np.ones((48, 64)), source="grid plate", layer="")
+    kept = fitting.fit(SCENE, plate, params=("coatings",), max_steps=3)
+    monkeypatch.setattr(fitting._grid_model, "FULL_IMAGE_BYTES", 0)
+    monkeypatch.setattr(fitting._fit, "_grid_image", lambda *a, **k: pytest.fail("the final render re-splatted the grid"))
+    summed = fitting.fit(SCENE, plate, params=("coatings",), max_steps=3)
+    np.testing.assert_allclose(summed.coating_tints, kept.coating_tints, rtol=1e-6)
+    np.testing.assert_allclose(summed.render, kept.render, rtol=1e-5, atol=1e-6 * kept.render.max())
