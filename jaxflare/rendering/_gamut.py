@@ -22,12 +22,12 @@ def clip_to_gamut(rgb: np.ndarray, luminance_weights: np.ndarray) -> np.ndarray:
     of its own luminance just enough that its lowest channel is 0; pixels of luminance <= 0 become
     0. Pixels without a negative channel are unchanged (float64 result)."""
     rgb = np.array(rgb, np.float64)  # a copy: only the pixels outside the gamut are rewritten
-    negative = rgb.min(axis=-1) < 0
+    negative = lowest_channel(rgb) < 0
     if not negative.any():
         return rgb
     outside = rgb[negative]  # (K, 3): usually a small part of the layer
     luminance = outside @ np.asarray(luminance_weights, np.float64)
-    lowest = outside.min(axis=-1)
+    lowest = lowest_channel(outside)
     movable = luminance > 0  # then luminance - lowest > 0
     scale = np.where(movable, luminance / np.where(movable, luminance - lowest, 1.0), 1.0)
     mapped = luminance[:, None] + scale[:, None] * (outside - luminance[:, None])
@@ -38,4 +38,11 @@ def clip_to_gamut(rgb: np.ndarray, luminance_weights: np.ndarray) -> np.ndarray:
 def gamut_clipped_fraction(rgb: np.ndarray) -> float:
     """The fraction of pixels of ``rgb`` (..., 3) with a negative channel (before clipping)."""
     rgb = np.asarray(rgb)
-    return float(np.mean(rgb.min(axis=-1) < 0)) if rgb.size else 0.0
+    return float(np.mean(lowest_channel(rgb) < 0)) if rgb.size else 0.0
+
+
+def lowest_channel(rgb: np.ndarray) -> np.ndarray:
+    """The smallest of the three channels of ``rgb`` (..., 3), per pixel. Two elementwise minima:
+    NumPy's reduction along a trailing axis of length 3 is about ten times slower (a 720p render's
+    layers spent 0.5 s in it)."""
+    return np.minimum(np.minimum(rgb[..., 0], rgb[..., 1]), rgb[..., 2])

@@ -207,13 +207,19 @@ def _vertex_rays(lights, front, spectral, lens, hood, schlick, light, front_unit
 VERTEX_RAYS = eqx.filter_jit(_vertex_rays)
 
 
-def trace_jobs(setup, lens, jobs: list[GridJob], events: list[np.ndarray], wavelengths: np.ndarray) -> tuple[jax.Array, np.ndarray]:
+def trace_jobs(
+    setup, lens, jobs: list[GridJob], events: list[np.ndarray], wavelengths: np.ndarray, *, packed: bool = False
+) -> tuple[jax.Array, np.ndarray]:
     """Trace every vertex of ``jobs`` (their ``row0`` is set here) at the traced ``wavelengths``;
-    ``events[k]`` is path k's event array. Returns the vertex rows on the device and on the host."""
+    ``events[k]`` is path k's event array. Returns the vertex rows on the device and on the host.
+    Each job's rows start a new chunk of :data:`TRACE_CHUNK`; ``packed``: only each run of
+    consecutive jobs of one path does (many small jobs, such as the sub-grids of
+    :mod:`._grid_refine`, would otherwise be mostly padding)."""
     pieces = {k: [] for k in ("light", "unit", "node", "light_unit", "wavelength")}
     chunk_paths = []
     row = 0
-    for job in jobs:
+    run_start = 0
+    for index, job in enumerate(jobs):
         job.row0 = row
         n = job.cells
         u0, v0, du, dv = job.domain
@@ -230,6 +236,10 @@ def trace_jobs(setup, lens, jobs: list[GridJob], events: list[np.ndarray], wavel
                 pieces["light_unit"].append(np.broadcast_to((job.node[0] + offset[0], job.node[1] + offset[1]), (v, 2)))
                 pieces["wavelength"].append(np.full(v, wavelength))
                 count += v
+        row += count
+        if packed and index + 1 < len(jobs) and jobs[index + 1].path == job.path:
+            continue  # the next job's rows follow in the same chunk
+        count = row - run_start
         padded = -(-count // TRACE_CHUNK) * TRACE_CHUNK
         if padded > count:
             pad = padded - count
@@ -239,7 +249,8 @@ def trace_jobs(setup, lens, jobs: list[GridJob], events: list[np.ndarray], wavel
             pieces["light_unit"].append(np.zeros((pad, 2)))
             pieces["wavelength"].append(np.full(pad, wavelengths[0]))
         chunk_paths += [job.path] * (padded // TRACE_CHUNK)
-        row += padded
+        row = run_start + padded
+        run_start = row
     total = row
     block_rays = TRACE_BLOCK * TRACE_CHUNK
     padded_total = -(-total // block_rays) * block_rays  # whole blocks: one compiled shape for every render
@@ -306,13 +317,18 @@ def _bracket(wavelength: float, x_nodes: np.ndarray) -> tuple[int, int, float]:
     return k0, k0 + 1, float(np.clip((x_nodes[k0] - x) / (x_nodes[k0] - x_nodes[k0 + 1]), 0.0, 1.0))
 
 
-def job_records(jobs: list[GridJob], pieces: list[dict], traced_nodes: np.ndarray, band: tuple[float, float]) -> dict:
-    """Host arrays of every record (a piece at one wavelength sub-node), in sub-sample order."""
+def job_records(jobs: list[GridJob], pieces: list[dict], traced_nodes: np.ndarray, band: tuple[float, float], refined=()) -> dict:
+    """Host arrays of every record (a piece at one wavelength sub-node), in sub-sample order.
+    ``refined``: the :class:`._grid_refine.RefinedCell` sub-grids of cells of ``jobs`` traced
+    again, each with its pieces (``refined_pieces``): their records belong to the cell's job, with
+    the piece and the corners' frame in the cell's units."""
     x_nodes = traced_nodes**-2.0
     traced = len(traced_nodes)
-    out = {k: [] for k in ("job", "sub_node", "sub_nodes", "piece", "side", "mixed", "corners", "bracket", "step", "count")}
+    out = {k: [] for k in ("job", "sub_node", "sub_nodes", "piece", "side", "mixed", "corners", "bracket", "step", "count", "frame")}
     low, high = band
-    for index, (job, piece) in enumerate(zip(jobs, pieces)):
+    owners = [(index, job, piece, None) for index, (job, piece) in enumerate(zip(jobs, pieces))]
+    owners += [(cell.job_index, cell.view, cell.pieces, cell) for cell in refined]
+    for index, job, piece, cell in owners:
         if not piece:
             continue
         n = job.cells
@@ -332,7 +348,14 @@ def job_records(jobs: list[GridJob], pieces: list[dict], traced_nodes: np.ndarra
                 out["job"].append(np.full(count, index))
                 out["sub_node"].append(np.full(count, m))
                 out["sub_nodes"].append(np.full(count, m_count))
-                out["piece"].append(np.stack([piece["a0"][chosen], piece["b0"][chosen], piece["size"][chosen]], axis=-1))
+                own = np.stack([piece["a0"][chosen], piece["b0"][chosen], piece["size"][chosen]], axis=-1)
+                if cell is None:  # the piece of the job's own cell, its corners the cell's
+                    out["piece"].append(own)
+                    out["frame"].append(np.tile([0.0, 0.0, 1.0], (count, 1)))
+                else:  # a piece of a sub-cell (i, j) of a refined cell: both in the cell's units
+                    sub = 1.0 / cell.view.cells
+                    out["piece"].append(np.stack([(i + own[:, 0]) * sub, (j + own[:, 1]) * sub, own[:, 2] * sub], axis=-1))
+                    out["frame"].append(np.stack([i * sub, j * sub, np.full(count, sub)], axis=-1))
                 out["side"].append(piece["side"][chosen])
                 out["mixed"].append(piece["mixed"][chosen])
                 out["corners"].append(rows)
@@ -372,6 +395,7 @@ def record_table(rows: jax.Array, records: dict) -> tuple[RecordTable, int, np.n
         sub_node=jnp.asarray(padded(records["sub_node"]), jnp.int32),
         sub_nodes=jnp.asarray(padded(records["sub_nodes"], 1), jnp.int32),
         piece=jnp.asarray(padded(records["piece"]), jnp.float32),
+        frame=jnp.asarray(padded(records["frame"], 1.0), jnp.float32),
         side=jnp.asarray(padded(records["side"], 1), jnp.int32),
         mixed=jnp.asarray(padded(records["mixed"], False)),
         end=jnp.asarray(end, jnp.int32),
@@ -461,10 +485,11 @@ class PreparedSplat:
     slot_samples: np.ndarray
 
 
-def prepare_splat(setup, jobs: list[GridJob], rows: jax.Array, pieces, traced_nodes, path_fresnel, band, num_slots: int) -> PreparedSplat | None:
-    """The records of ``jobs`` (``pieces``: :func:`cell_pieces` of each) as device tables (None
-    when no cell of any job may carry light)."""
-    records = job_records(jobs, pieces, traced_nodes, band)
+def prepare_splat(setup, jobs: list[GridJob], rows: jax.Array, pieces, traced_nodes, path_fresnel, band, num_slots: int, refined=()) -> PreparedSplat | None:
+    """The records of ``jobs`` (``pieces``: :func:`cell_pieces` of each; ``refined``: their cells
+    traced again, see :func:`job_records`) as device tables (None when no cell of any job may
+    carry light)."""
+    records = job_records(jobs, pieces, traced_nodes, band, refined)
     if not records:
         return None
     table, total, first = record_table(rows, records)

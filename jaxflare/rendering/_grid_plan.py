@@ -34,6 +34,7 @@ from ._grid import (
 )
 from ._grid_cells import cell_pieces, round_sub_nodes, summarise_cells
 from ._grid_blur import BLUR_MAX_PX, BLUR_MIN_PX, BLUR_SPACING, blur_border, light_jacobian_px
+from ._grid_refine import refine_mixed_cells
 from ._grid_splat import COMPOSE_LAYERS, COMPOSE_LEVELS, LEVELS
 from ._grid_trace import SENSOR
 from ._lights import LightArrays, light_arrays
@@ -400,7 +401,11 @@ def prepare_grid(plan: GridPlan) -> PreparedGrid:
     summaries = [
         summarise_cells(job, host_rows, len(plan.wavelengths), lens32, plan.pixel_pitch_mm, width, height, distortion) for job in plan.jobs
     ]
-    for job, summary in zip(plan.jobs, summaries):
+    jacobian_summaries = summaries
+    summaries, refined, refined_rows, refined_host = refine_mixed_cells(
+        setup, lens32, plan.jobs, summaries, plan.events, plan.wavelengths, plan.pixel_pitch_mm, distortion
+    )
+    for job, summary in zip(plan.jobs, jacobian_summaries):
         jacobian = None
         if job.blur:
             jacobian = light_jacobian_px(job, host_rows, len(plan.wavelengths), summary.passing, plan.pixel_pitch_mm, LEVELS[job.level])
@@ -414,8 +419,20 @@ def prepare_grid(plan: GridPlan) -> PreparedGrid:
         cell_pieces(job, s, lens32, width, height, distortion, plan.grid.fringe_px, job.sub_nodes, plan.grid.colour_error, plan.grid.edge_side)
         for job, s in zip(plan.jobs, summaries)
     ]
-    prepared = prepare_splat(setup, plan.jobs, rows, pieces, plan.wavelengths, plan.path_fresnel, plan.spectral.band_nm, len(plan.paths))
-    return PreparedGrid(prepared=prepared, rays=int(host_rows.shape[0]))
+    rays = int(host_rows.shape[0])
+    if refined:
+        for cell in refined:
+            cell.pieces = cell_pieces(
+                cell.view, cell.summary, lens32, width, height, distortion, plan.grid.fringe_px, cell.view.sub_nodes, plan.grid.colour_error,
+                plan.grid.edge_side,
+            )
+            cell.view.row0 += rays
+        rows = jnp.concatenate([rows, refined_rows])
+        rays += int(refined_host.shape[0])
+    prepared = prepare_splat(
+        setup, plan.jobs, rows, pieces, plan.wavelengths, plan.path_fresnel, plan.spectral.band_nm, len(plan.paths), refined=refined
+    )
+    return PreparedGrid(prepared=prepared, rays=rays)
 
 
 def grid_layers(setup: RenderSetup, plan: GridPlan, prepared: PreparedGrid):

@@ -128,6 +128,9 @@ class RecordTable(eqx.Module):
     """How many sub-nodes the record's piece has (1: the whole band at once)."""
     piece: Float[Array, "R 3"]
     """The piece of the cell: its corner (a0, b0) and size, in cell units."""
+    frame: Float[Array, "R 3"]
+    """The square its four corners span (a0, b0, size, in cell units): (0, 0, 1) for the cell's
+    own corners, a sub-cell's for a cell traced again on a finer grid (:mod:`._grid_refine`)."""
     side: Int[Array, " R"]
     """Sub-samples per side (``side**2`` of them; a mixed cell has side 2, one per corner)."""
     mixed: Array
@@ -248,8 +251,11 @@ def subsample_values(setup, jobs: JobTable, records: RecordTable, total: Array, 
     sidef = side.astype(jnp.float32)[:, None]
     a = piece[:, :1] + piece[:, 2:3] * (local % side[:, None] + jnp.where(mixed, 0.5, shift_a)[:, None]) / sidef
     b = piece[:, 1:2] + piece[:, 2:3] * (local // side[:, None] + jnp.where(mixed, 0.5, shift_b)[:, None]) / sidef
-    wa = jnp.where(mixed[:, None], jnp.round(a), a)
-    wb = jnp.where(mixed[:, None], jnp.round(b), b)
+    frame = records.frame[r]
+    wa = (a - frame[:, :1]) / frame[:, 2:3]  # where the sub-sample lies between its record's corners
+    wb = (b - frame[:, 1:2]) / frame[:, 2:3]
+    wa = jnp.where(mixed[:, None], jnp.round(wa), wa)
+    wb = jnp.where(mixed[:, None], jnp.round(wb), wb)
     values = records.values[r]
     corners = values[:, : 4 * NUM_QUANTITIES].reshape(num_tiles, 4, NUM_QUANTITIES)
     weights = ((1 - wa) * (1 - wb), wa * (1 - wb), (1 - wa) * wb, wa * wb)  # (T, TILE) each
