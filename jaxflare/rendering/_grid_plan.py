@@ -34,7 +34,7 @@ from ._grid import (
 )
 from ._grid_cells import cell_pieces, round_sub_nodes, summarise_cells
 from ._grid_blur import BLUR_MAX_PX, BLUR_MIN_PX, BLUR_SPACING, blur_border, light_jacobian_px
-from ._grid_refine import refine_mixed_cells
+from ._grid_refine import refine_mixed_cells, refined_edge_side
 from ._grid_splat import COMPOSE_LAYERS, COMPOSE_LEVELS, LEVELS
 from ._grid_trace import SENSOR
 from ._lights import LightArrays, light_arrays
@@ -424,7 +424,7 @@ def prepare_grid(plan: GridPlan) -> PreparedGrid:
         for cell in refined:
             cell.pieces = cell_pieces(
                 cell.view, cell.summary, lens32, width, height, distortion, plan.grid.fringe_px, cell.view.sub_nodes, plan.grid.colour_error,
-                plan.grid.edge_side,
+                refined_edge_side(plan.grid.edge_side),
             )
             cell.view.row0 += rays
         rows = jnp.concatenate([rows, refined_rows])
