@@ -229,6 +229,7 @@ def draw(rows, machine):
         for ax, title in ((axes[0, col], "relative RMSE"), (axes[1, col], "mean FLIP")):
             ax.set_xscale("log")
             ax.set_yscale("log")
+            ax.xaxis.set_minor_formatter(plt.NullFormatter())
             ax.set_xlabel("warm wall time (s)")
             ax.set_title(f"{name}: {title}", fontsize=9)
             ax.grid(True, which="both", alpha=0.3)
