@@ -320,8 +320,8 @@ def _bracket(wavelength: float, x_nodes: np.ndarray) -> tuple[int, int, float]:
 def job_records(jobs: list[GridJob], pieces: list[dict], traced_nodes: np.ndarray, band: tuple[float, float], refined=()) -> dict:
     """Host arrays of every record (a piece at one wavelength sub-node), in sub-sample order.
     ``refined``: the :class:`._grid_refine.RefinedCell` sub-grids of cells of ``jobs`` traced
-    again, each with its pieces (``refined_pieces``): their records belong to the cell's job, with
-    the piece and the corners' frame in the cell's units."""
+    again, each with its pieces: their records belong to the cell's job, with the piece and the
+    corners' frame in the cell's units."""
     x_nodes = traced_nodes**-2.0
     traced = len(traced_nodes)
     out = {k: [] for k in ("job", "sub_node", "sub_nodes", "piece", "side", "mixed", "corners", "bracket", "step", "count", "frame")}

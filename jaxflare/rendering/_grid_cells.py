@@ -15,8 +15,9 @@ From a job's traced vertices (:mod:`._grid_trace` rows) the host decides, per ce
   piece's colour spread.
 
 A cell whose corners disagree about validity (some were lost by the wide-open trace: a miss or
-total internal reflection) is *mixed*: it is drawn by four sub-samples, each taking one corner's
-traced values and a quarter of the cell's flux.
+total internal reflection) is *mixed*: it is traced again as a finer sub-grid (:mod:`._grid_refine`),
+and a sub-cell still mixed is drawn by four sub-samples, each taking one corner's traced values and
+a quarter of the sub-cell's flux.
 
 Every piece gets ``side x side`` sub-samples, ``side`` = its image's diagonal over the sub-sample
 spacing (in pixels of its path's image level).

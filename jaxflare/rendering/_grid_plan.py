@@ -401,11 +401,7 @@ def prepare_grid(plan: GridPlan) -> PreparedGrid:
     summaries = [
         summarise_cells(job, host_rows, len(plan.wavelengths), lens32, plan.pixel_pitch_mm, width, height, distortion) for job in plan.jobs
     ]
-    jacobian_summaries = summaries
-    summaries, refined, refined_rows, refined_host = refine_mixed_cells(
-        setup, lens32, plan.jobs, summaries, plan.events, plan.wavelengths, plan.pixel_pitch_mm, distortion
-    )
-    for job, summary in zip(plan.jobs, jacobian_summaries):
+    for job, summary in zip(plan.jobs, summaries):
         jacobian = None
         if job.blur:
             jacobian = light_jacobian_px(job, host_rows, len(plan.wavelengths), summary.passing, plan.pixel_pitch_mm, LEVELS[job.level])
@@ -415,6 +411,9 @@ def prepare_grid(plan: GridPlan) -> PreparedGrid:
         job.blur_border = 0 if jacobian is None else max(job.blur_border, blur_border(jacobian))
         if jacobian is not None:  # the disc's image smooths a lattice much finer than its narrowest width
             job.spacing_px = max(job.spacing_px, BLUR_SPACING * float(np.linalg.svd(jacobian, compute_uv=False)[-1]))
+    summaries, refined, refined_rows, refined_host = refine_mixed_cells(
+        setup, lens32, plan.jobs, summaries, plan.events, plan.wavelengths, plan.pixel_pitch_mm, distortion
+    )
     pieces = [
         cell_pieces(job, s, lens32, width, height, distortion, plan.grid.fringe_px, job.sub_nodes, plan.grid.colour_error, plan.grid.edge_side)
         for job, s in zip(plan.jobs, summaries)

@@ -44,8 +44,6 @@ class RefinedCell:
 
     job_index: int
     """The job the cell belongs to (its records are that job's)."""
-    cell: tuple[int, int]
-    """(column, row) of the cell in the job's grid."""
     view: GridJob
     """The sub-grid: the job over the cell's domain, ``MIXED_SUBCELLS`` cells per side."""
     summary: CellSummary | None = None
@@ -68,7 +66,7 @@ def refine_mixed_cells(setup, lens, jobs: list[GridJob], summaries: list[CellSum
         for j, i in np.argwhere(mixed):
             domain = (u0 + i * du, v0 + j * dv, du / MIXED_SUBCELLS, dv / MIXED_SUBCELLS)
             view = dataclasses.replace(job, domain=domain, cells=MIXED_SUBCELLS, blur_jacobian=None, row0=0)
-            refined.append(RefinedCell(job_index=index, cell=(int(i), int(j)), view=view))
+            refined.append(RefinedCell(job_index=index, view=view))
         kept_summaries[index] = dataclasses.replace(summary, kept=summary.kept & ~mixed)
     if not refined:
         return kept_summaries, refined, None, None
