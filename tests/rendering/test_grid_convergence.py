@@ -7,11 +7,11 @@ import pytest
 
 from .grid_cases import grid, luminance
 
-FINE = (("min_cells", 64), ("max_cells", 64), ("spacing_px", 0.2))
+FINE = (("min_cells", 64), ("max_cells", 64), ("spacing_px", 0.2), ("edge_side", 8))
 
 
 def cells(n):
-    return (("min_cells", n), ("max_cells", n), ("spacing_px", 0.2))
+    return (("min_cells", n), ("max_cells", n), ("spacing_px", 0.2), ("edge_side", 8))
 
 
 def test_grid_image_converges_as_the_grid_doubles():
