@@ -14,8 +14,6 @@ from them, so no layer has a negative pixel.
 
 from __future__ import annotations
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 
@@ -48,27 +46,3 @@ def lowest_channel(rgb: np.ndarray) -> np.ndarray:
     NumPy's reduction along a trailing axis of length 3 is about ten times slower (a 720p render's
     layers spent 0.5 s in it)."""
     return np.minimum(np.minimum(rgb[..., 0], rgb[..., 1]), rgb[..., 2])
-
-
-@jax.jit
-def _map_layers(layers, scale, luminance_weights, flare_slots):
-    scaled = layers * scale[:, None, None, None]
-    flare = jnp.sum(jnp.where((jnp.arange(layers.shape[0]) < flare_slots)[:, None, None, None], scaled, 0.0), axis=0)
-    outside = jnp.mean(jnp.minimum(jnp.minimum(flare[..., 0], flare[..., 1]), flare[..., 2]) < 0)
-    lowest = jnp.minimum(jnp.minimum(scaled[..., 0], scaled[..., 1]), scaled[..., 2])[..., None]
-    luminance = (scaled @ luminance_weights)[..., None]
-    movable = luminance > 0
-    factor = jnp.where(movable & (lowest < 0), luminance / jnp.where(movable, luminance - lowest, 1.0), 1.0)
-    mapped = jnp.where(movable, jnp.maximum(luminance + factor * (scaled - luminance), 0.0), 0.0)
-    return jnp.where(lowest < 0, mapped, scaled), outside
-
-
-def map_layers_to_gamut(layers, scale, luminance_weights, flare_slots: int) -> tuple[np.ndarray, float]:
-    """:func:`clip_to_gamut` for a stack of layers (Y, H, W, 3), each times its ``scale`` (Y,), in
-    one compiled float32 pass (the host's float64 pass took 0.4 s of a 720p grid preview's 2.5 s),
-    and the fraction of pixels of the sum of the first ``flare_slots`` scaled layers (the default
-    image) with a negative channel before clipping."""
-    mapped, outside = _map_layers(
-        jnp.asarray(layers, jnp.float32), jnp.asarray(scale, jnp.float32), jnp.asarray(luminance_weights, jnp.float32), jnp.int32(flare_slots)
-    )
-    return np.asarray(mapped), float(outside)

@@ -475,6 +475,11 @@ def job_colours(setup, path_fresnel, light, path, fine, averaging):
 _job_colours = eqx.filter_jit(job_colours)
 
 
+SPLAT_GROUP_SUBSAMPLES = 2**30
+"""Most sub-samples in one splat (their indices are 32-bit integers on the device; a fine
+reference of a two-light 720p scene asked for 4.3 G)."""
+
+
 @dataclasses.dataclass
 class PreparedSplat:
     """Everything the splat kernel reads, built on the host from traced vertices: the device
@@ -484,10 +489,15 @@ class PreparedSplat:
     table: RecordTable
     jobs: JobTable
     total: int
+    """Sub-samples of every group (this one and ``more``)."""
     first: np.ndarray
     chunks: int
     records: int
     slot_samples: np.ndarray
+    more: tuple = ()
+    """Further groups of records (table, sub-samples, chunk starts, chunks), splatted after this
+    one: a render of more than :data:`SPLAT_GROUP_SUBSAMPLES` sub-samples is split so that every
+    sub-sample index fits the kernel's 32-bit integers."""
 
 
 def prepare_splat(setup, jobs: list[GridJob], rows: jax.Array, pieces, traced_nodes, path_fresnel, band, num_slots: int, refined=()) -> PreparedSplat | None:
@@ -497,13 +507,21 @@ def prepare_splat(setup, jobs: list[GridJob], rows: jax.Array, pieces, traced_no
     records = job_records(jobs, pieces, traced_nodes, band, refined)
     if not records:
         return None
-    table, total, first = record_table(rows, records)
+    end = np.cumsum(records["count"])
+    bounds = np.searchsorted(end, np.arange(1, -(-int(end[-1]) // SPLAT_GROUP_SUBSAMPLES)) * SPLAT_GROUP_SUBSAMPLES, side="right")
+    groups = []
+    for start, stop in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [len(end)]])):
+        table, total, first = record_table(rows, {key: value[start:stop] for key, value in records.items()})
+        chunks = len(first)
+        groups.append((table, total, np.concatenate([first, np.zeros(_bucket(max(chunks, MIN_CHUNKS)) - chunks, first.dtype)]), chunks))
     job_arrays = job_table(setup, jobs, path_fresnel, band)
-    chunks = len(first)
-    first = np.concatenate([first, np.zeros(_bucket(max(chunks, MIN_CHUNKS)) - chunks, first.dtype)])
     slots = np.asarray([job.slot for job in jobs])[records["job"]]
     slot_samples = np.bincount(slots, weights=records["count"], minlength=num_slots)
-    return PreparedSplat(table=table, jobs=job_arrays, total=total, first=first, chunks=chunks, records=len(records["count"]), slot_samples=slot_samples)
+    table, _, first, chunks = groups[0]
+    return PreparedSplat(
+        table=table, jobs=job_arrays, total=int(end[-1]), first=first, chunks=chunks, records=len(records["count"]), slot_samples=slot_samples,
+        more=tuple(groups[1:]),
+    )
 
 
 def splat_prepared(setup, prepared: PreparedSplat | None, num_layers: int, num_slots: int):
@@ -514,10 +532,10 @@ def splat_prepared(setup, prepared: PreparedSplat | None, num_layers: int, num_s
     acc = empty_grid_accumulators(num_layers, num_slots, width, height, 1 if blur is None else blur.size)
     if prepared is None:
         return acc
-    return SPLAT_SUBSAMPLES(
-        setup, prepared.jobs, prepared.table, acc, jnp.asarray(prepared.total, jnp.int32), jnp.asarray(prepared.first, jnp.int32),
-        jnp.asarray(prepared.chunks, jnp.int32),
-    )
+    first_total = prepared.total - sum(group[1] for group in prepared.more)
+    for table, total, first, chunks in ((prepared.table, first_total, prepared.first, prepared.chunks),) + prepared.more:
+        acc = SPLAT_SUBSAMPLES(setup, prepared.jobs, table, acc, jnp.asarray(total, jnp.int32), jnp.asarray(first, jnp.int32), jnp.asarray(chunks, jnp.int32))
+    return acc
 
 
 def splat_jobs(setup, jobs: list[GridJob], rows: jax.Array, pieces, traced_nodes, path_fresnel, band, num_layers: int, num_slots: int):

@@ -38,7 +38,7 @@ from jaxtyping import Array, Float, Int
 
 from ..optics import EventTable, on_axis_fresnel
 from ..scenes import Scene, load_scene
-from ._grid import band_averaging, job_colours, job_table
+from ._grid import SPLAT_GROUP_SUBSAMPLES, band_averaging, job_colours, job_table
 from ._grid_plan import GridPlan, plan_grid, prepare_grid
 from ._grid_splat import DirtCells, JobTable, RecordTable, compose_layers, empty_grid_accumulators, packed_shape, splat_subsamples
 from ._lights import LightArrays
@@ -251,6 +251,11 @@ def grid_flare_model(
     prepared = prepare_grid(plan).prepared
     if prepared is None:
         raise ValueError("the scene's flare paths put no light on the image: there is nothing to model")
+    if prepared.more:
+        raise ValueError(
+            f"the grid of this scene draws {prepared.total:,} sub-samples, more than a flare model keeps in one table "
+            f"({SPLAT_GROUP_SUBSAMPLES:,}): fit at a lower resolution or quality, or pass a larger grid_error"
+        )
     setup = plan.setup
     num_lights = int(setup.lights.kind.shape[0])
     bases = []
