@@ -69,7 +69,7 @@ REFERENCE_ERROR = 0.002
 resolution through ``grid_error``) yet affordable on a loaded 2-core machine."""
 MC_SAMPLES = (2**20, 2**22)
 GRID_CONFIGS = (
-    ("grid coarse", {"grid_error": 0.1, "grid_options": {"max_sub_nodes": 8, "max_cells": 48}}),
+    ("grid coarse", {"grid_error": 0.1, "grid_options": {"spacing_px": 1.0, "max_sub_nodes": 8, "max_cells": 48}}),
     ("grid preview", {}),
     ("grid fine", {"grid_error": 0.02, "grid_options": {"spacing_px": 0.5, "edge_side": 8}}),
 )

@@ -14,6 +14,7 @@ import pytest
 import fitting
 import jaxflare as jf
 from fitting._thin_film import film_layers
+from jaxflare import rendering
 from jaxflare.rendering import grid_flare_model
 from jaxflare.scenes import SurfaceCoating, camera_lens
 from tests.helpers import BIOTAR_TWO_LIGHTS, flare_only
@@ -27,6 +28,15 @@ QUARTER_WAVE_NM = 550.0 / (4 * 1.38)
 TRUE_SCALE = {1: 0.85, 4: 1.15, 8: 1.3}
 IMAGE = eqx.filter_jit(lambda model, fresnel: model.image(jnp.ones((model.num_paths, 3)), None, None, fresnel))
 FRESNEL = eqx.filter_jit(lambda model, indices, thicknesses: model.path_fresnel(indices, thicknesses))
+GRID = dict(grid_error=0.03, grid_options=dict(spacing_px=0.5, edge_side=8, max_cells=48))
+"""The model's and the plates' grid, finer than the preview default (these tests are about the
+thin-film model, not the grid's error): at the preview defaults of 2026-12-07 (5 % target, spacing
+0.7, 4 per edge side) the fit still recovers every thickness within 1 %, but 6 of 8 layers lie within
+3 standard errors against the 80 % asked below."""
+
+
+def grid_render(scene):
+    return rendering.render_grid(flare_only(scene), "preview", **GRID).image[..., :3]
 
 
 def with_stacks(scene, scale):
@@ -36,7 +46,7 @@ def with_stacks(scene, scale):
 
 @pytest.fixture(scope="module")
 def model():
-    return grid_flare_model(SCENE, "preview")
+    return grid_flare_model(SCENE, "preview", **GRID)
 
 
 def relative_rmse(a, b):
@@ -52,7 +62,7 @@ def test_recoloured_model_equals_the_render_of_the_changed_coating(model):
     truth = with_stacks(SCENE, TRUE_SCALE)
     changed = np.asarray(camera_lens(truth.camera).coating_thicknesses_nm, np.float32)
     recoloured = np.asarray(IMAGE(model, FRESNEL(model, lens.coating_indices, jnp.asarray(changed))), np.float64)
-    rendered = jf.render(flare_only(truth), estimator="grid", quality="preview").image[..., :3]
+    rendered = grid_render(truth)
     assert relative_rmse(recoloured, rendered) < 0.02  # the planned grid differs a little with the coatings
     assert relative_rmse(np.asarray(IMAGE(model, None)), rendered) > 0.3  # and the change is large
 
@@ -78,7 +88,7 @@ def test_thickness_gradient_matches_finite_differences(model):
 
 def test_thin_film_fit_recovers_the_thicknesses_of_a_known_stack(model, tmp_path):
     truth = with_stacks(SCENE, TRUE_SCALE)
-    rendered = jf.render(flare_only(truth), estimator="grid", quality="preview").image[..., :3]
+    rendered = grid_render(truth)
     # 1 % of the plate's mean level per pixel (the peak is ~370 times the mean: 1 % of it would
     # bury every ghost but the brightest)
     noise = np.random.default_rng(0).normal(0.0, 0.01 * rendered.mean(), rendered.shape)
