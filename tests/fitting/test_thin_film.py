@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 
 import fitting
-import jaxflare as jf
 from fitting._thin_film import film_layers
 from jaxflare import rendering
 from jaxflare.rendering import grid_flare_model
