@@ -71,7 +71,7 @@ MC_SAMPLES = (2**20, 2**22)
 GRID_CONFIGS = (
     ("grid coarse", {"grid_error": 0.1, "grid_options": {"spacing_px": 1.0, "max_sub_nodes": 8, "max_cells": 48}}),
     ("grid preview", {}),
-    ("grid fine", {"grid_error": 0.02, "grid_options": {"spacing_px": 0.5, "edge_side": 8}}),
+    ("grid fine", {"grid_error": 0.02, "grid_options": {"spacing_px": 0.4, "edge_side": 8}}),
 )
 THRESHOLDS = (0.05, 0.01)
 """The relative RMSE levels whose time is quoted per scene and estimator (the issue's 5 % and 1 %)."""

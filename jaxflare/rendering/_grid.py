@@ -111,12 +111,12 @@ class GridQuality:
 
 
 GRID_QUALITY = {
-    # preview: aims at the 5 % preview error; sub-samples 0.7 level pixels apart and 4 per
-    # side of an edge piece, up to 96 cells (chosen from the error-against-time chart: see
-    # benchmarks/README.md; at 1 level pixel apart the lattice beat against the pixel grid in
-    # stripes over the demo's veil)
+    # preview: aims at the 5 % preview error; sub-samples half a level pixel apart and 4
+    # per side of an edge piece, up to 96 cells (chosen from the error-against-time chart: see
+    # benchmarks/README.md; 0.7 or 1 level pixel apart was 10-20 % faster on the demo but the
+    # lattice beat against the pixel grid in stripes over its veil, seen at 1:1)
     "preview": GridQuality(
-        target_error=0.05, wavelengths=3, max_sub_nodes=16, max_cells=96, min_cells=8, tolerance_px=0.3, spacing_px=0.7, fringe_px=1.5, colour_error=0.01, max_side=256,
+        target_error=0.05, wavelengths=3, max_sub_nodes=16, max_cells=96, min_cells=8, tolerance_px=0.3, spacing_px=0.5, fringe_px=1.5, colour_error=0.01, max_side=256,
         edge_side=4,
     ),
     "production": GridQuality(

@@ -29,9 +29,9 @@ IMAGE = eqx.filter_jit(lambda model, fresnel: model.image(jnp.ones((model.num_pa
 FRESNEL = eqx.filter_jit(lambda model, indices, thicknesses: model.path_fresnel(indices, thicknesses))
 GRID = dict(grid_error=0.03, grid_options=dict(spacing_px=0.5, edge_side=8, max_cells=48))
 """The model's and the plates' grid, finer than the preview default (these tests are about the
-thin-film model, not the grid's error): at the preview defaults of 2026-12-07 (5 % target, spacing
-0.7, 4 per edge side) the fit still recovers every thickness within 1 %, but 6 of 8 layers lie within
-3 standard errors against the 80 % asked below."""
+thin-film model, not the grid's error): with the preview's 5 % target, 4 sub-samples per edge side
+and a spacing of 0.7 (tried 2026-12-07) the fit still recovered every thickness within 1 %, but 6
+of 8 layers lay within 3 standard errors against the 80 % asked below."""
 
 
 def grid_render(scene):
