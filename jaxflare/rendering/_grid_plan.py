@@ -338,7 +338,7 @@ def plan_grid(
     # the error model (squared error of path k drawn at a level): its edges blurred over a level
     # pixel (the pilot image's edge term) and its compressed cells' peaks lost (a caustic the
     # 16 px pilot image cannot see). Not modelled: the cells' bilinear interpolation (cells
-    # capped at max_cells), wavelength sub-nodes capped at max_sub_nodes, sub-sample spacing; the
+    # capped at max_cells), the colour steps (fringe_px, colour_error), sub-sample spacing; the
     # wide-angle benchmark scene, whose ghosts bend most, is where these show (see benchmarks/README.md)
     def error2(k, level):  # drawn at full resolution, a path blurs nothing the reference does not
         return EDGE_ERROR * (LEVELS[level] - 1) * per_path[k]["edge"] + compression_error2(per_path[k]["compressed"], LEVELS[level])
