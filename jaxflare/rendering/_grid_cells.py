@@ -93,6 +93,9 @@ class CellSummary:
     allowances for the light's disc: margin, stop (three passes), image (px)."""
     change: np.ndarray
     """(n, n): largest |change of log image area| to a neighbouring cell (irradiance smoothness)."""
+    image_area_px: np.ndarray
+    """(n, n): area of each cell's image at the middle traced wavelength (px^2, the quadrilateral of
+    its corners)."""
 
 
 def stratum_reach(job) -> float:
@@ -148,7 +151,9 @@ def summarise_cells(job, rows: np.ndarray, traced: int, lens, pitch_mm: float, w
     change[:, :-1] = np.maximum(change[:, :-1], step_u)
     change[1:] = np.maximum(change[1:], step_v)
     change[:-1] = np.maximum(change[:-1], step_v)
-    return CellSummary(kept=kept, mixed=mixed, full=full, passing=passing, sensor_px=sensor_px, motion_px=moving, features=features, change=change)
+    return CellSummary(
+        kept=kept, mixed=mixed, full=full, passing=passing, sensor_px=sensor_px, motion_px=moving, features=features, change=change, image_area_px=area,
+    )
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -32,7 +32,7 @@ from ._grid import (
     trace_jobs,
     traced_wavelengths,
 )
-from ._grid_cells import _cross, cell_pieces, round_sub_nodes, summarise_cells
+from ._grid_cells import cell_pieces, round_sub_nodes, summarise_cells
 from ._grid_blur import BLUR_MAX_PX, BLUR_MIN_PX, BLUR_SPACING, blur_border, light_jacobian_px
 from ._grid_refine import refine_mixed_cells, refined_edge_side
 from ._grid_splat import COMPOSE_LAYERS, COMPOSE_LEVELS, LEVELS
@@ -126,13 +126,11 @@ def cell_flux_areas(summary, energy: float, px_per_pilot_px: float) -> tuple[np.
     image (full-resolution px^2, middle traced wavelength): where the map compresses a cell into
     a pixel or two (a caustic, a ghost focused near the sensor) the irradiance peaks far above
     what the pilot's 16 px image shows."""
-    middle = summary.sensor_px.shape[1] // 2
-    image = summary.sensor_px[0, middle] * px_per_pilot_px
-    ok = summary.passing[middle]
+    ok = summary.passing[summary.passing.shape[0] // 2]
     cell_ok = ok[1:, 1:] & ok[:-1, :-1] & ok[:-1, 1:] & ok[1:, :-1]
     if energy <= 0 or not cell_ok.any():
         return np.zeros(0), np.zeros(0)
-    area = 0.5 * np.abs(_cross(image[1:, 1:] - image[:-1, :-1], image[:-1, 1:] - image[1:, :-1]))[cell_ok]
+    area = summary.image_area_px[cell_ok] * px_per_pilot_px**2
     return np.full(area.shape, energy / area.size), area
 
 
@@ -340,8 +338,13 @@ def plan_grid(
     # 16 px pilot image cannot see). Not modelled: the cells' bilinear interpolation (cells
     # capped at max_cells), the colour steps (fringe_px, colour_error), sub-sample spacing; the
     # wide-angle benchmark scene, whose ghosts bend most, is where these show (see benchmarks/README.md)
+    # (made once per path and level: the level search below reads it thousands of times)
+    error2_table = [
+        [EDGE_ERROR * (scale_px - 1) * info["edge"] + compression_error2(info["compressed"], scale_px) for scale_px in LEVELS] for info in per_path
+    ]
+
     def error2(k, level):  # drawn at full resolution, a path blurs nothing the reference does not
-        return EDGE_ERROR * (LEVELS[level] - 1) * per_path[k]["edge"] + compression_error2(per_path[k]["compressed"], LEVELS[level])
+        return error2_table[k][level]
 
     level_of = [len(LEVELS) - 1] * num_paths
     drawn = [k for k in range(num_paths) if enabled[k] and per_path[k]["kept"]]
