@@ -74,6 +74,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ._disk_cache import persisted
+
 __all__ = [
     "COLOUR_SPACES",
     "SpectralTable",
@@ -191,13 +193,20 @@ def colour_space_chromaticities(colour_space: str) -> tuple[float, float, float,
     space (colour-science's values): the eight numbers of an OpenEXR ``chromaticities`` attribute,
     in its order (red x, y, green x, y, blue x, y, white x, y). ACEScg: the AP1 primaries with the
     ACES white (about D60); linear sRGB: the Rec. 709 primaries with D65."""
+    return tuple(float(v) for v in _chromaticities(canonical_colour_space(colour_space)))  # type: ignore[return-value]
+
+
+@functools.cache
+@persisted
+def _chromaticities(colour_space: str) -> np.ndarray:
     import colour
 
-    space = colour.RGB_COLOURSPACES[_COLOUR_SCIENCE_NAMES[canonical_colour_space(colour_space)]]
-    values = [float(v) for v in np.asarray(space.primaries, dtype=np.float64).ravel()] + [float(v) for v in np.asarray(space.whitepoint, np.float64)]
-    return tuple(values)  # type: ignore[return-value]
+    space = colour.RGB_COLOURSPACES[_COLOUR_SCIENCE_NAMES[colour_space]]
+    return np.concatenate([np.asarray(space.primaries, dtype=np.float64).ravel(), np.asarray(space.whitepoint, np.float64)])
 
 
+@functools.cache
+@persisted
 def _space_matrices(colour_space: str) -> tuple[np.ndarray, np.ndarray]:
     """``(RGB_to_XYZ, whitepoint XYZ)`` of an output space, float64.
 
@@ -213,9 +222,15 @@ def _space_matrices(colour_space: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _cat(white_from: np.ndarray, white_to: np.ndarray) -> np.ndarray:
+    return _cat_matrix(tuple(float(v) for v in white_from), tuple(float(v) for v in white_to))
+
+
+@functools.cache
+@persisted
+def _cat_matrix(white_from: tuple[float, float, float], white_to: tuple[float, float, float]) -> np.ndarray:
     import colour
 
-    return np.asarray(colour.adaptation.matrix_chromatic_adaptation_VonKries(white_from, white_to, transform=_CAT))
+    return np.asarray(colour.adaptation.matrix_chromatic_adaptation_VonKries(np.asarray(white_from), np.asarray(white_to), transform=_CAT))
 
 
 @functools.cache
@@ -246,6 +261,7 @@ def _resample(sd_wavelengths, sd_values, grid: np.ndarray) -> np.ndarray:
 
 
 @functools.cache
+@persisted
 def _build_tables(colour_space: str, band_nm: tuple[float, float], step_nm: float) -> dict[str, np.ndarray]:
     """All tables in float64 NumPy, plus diagnostics (``raw_mean``: band mean of K before renormalisation)."""
     import colour
