@@ -172,27 +172,28 @@ def classify(corners: np.ndarray, valid: np.ndarray, job, lens, width: int, heig
     image, stop, margin = corners[..., 0:2], corners[..., 2:8], corners[..., 8]
     margin_slack, stop_slack, image_slack = corners[..., 9], corners[..., 10:13], corners[..., 13]
     any_valid = valid.any(axis=(1, 2))
+    valid_b = valid[..., None]
 
-    def beyond_all(outside):  # every valid corner beyond the line
-        return np.where(valid, outside, True).all(axis=(1, 2)) & any_valid
+    def beyond_all(outside):  # (N, 4, K, B) -> (N,): for some b, every valid corner beyond line b
+        return (np.where(valid_b, outside, True).all(axis=(1, 2)) & any_valid[:, None]).any(axis=-1)
 
-    excluded = beyond_all(margin + margin_slack < 0)
+    excluded = beyond_all((margin + margin_slack < 0)[..., None])
     inside = np.where(valid, margin - margin_slack > 0, True).all(axis=(1, 2))
     normals, apothem = iris_half_planes(lens)
     radius = float(lens.stop_radius_mm)
     for p in range(job.passes):
-        x, y, slack = stop[..., 2 * p], stop[..., 2 * p + 1], stop_slack[..., p]
-        for nx, ny in normals:
-            excluded |= beyond_all(x * nx + y * ny - apothem - slack > 0)
+        x, y, slack = stop[..., 2 * p, None], stop[..., 2 * p + 1, None], stop_slack[..., p, None]
+        along = x * normals[:, 0] + y * normals[:, 1]  # (N, 4, K, B): along each blade's outward normal
+        excluded |= beyond_all(along - apothem - slack > 0)
         if lens.aperture_blades == 0:
-            inside &= np.where(valid, np.hypot(x, y) + slack < radius, True).all(axis=(1, 2))
+            inside &= np.where(valid, np.hypot(x[..., 0], y[..., 0]) + slack[..., 0] < radius, True).all(axis=(1, 2))
         else:
-            for nx, ny in normals:
-                inside &= np.where(valid, x * nx + y * ny + slack < apothem, True).all(axis=(1, 2))
+            inside &= np.where(valid_b, along + slack < apothem, True).all(axis=(1, 2, 3))
     pad = (2.0 + job.blur_border) * LEVELS[job.level] + (0.1 * max(width, height) if distortion else 0.0)
     column, row = image[..., 0], image[..., 1]
-    for outside in (column + image_slack < -pad, column - image_slack > width + pad, row + image_slack < -pad, row - image_slack > height + pad):
-        excluded |= beyond_all(outside)
+    excluded |= beyond_all(
+        np.stack([column + image_slack < -pad, column - image_slack > width + pad, row + image_slack < -pad, row - image_slack > height + pad], axis=-1)
+    )
     return excluded, inside & ~excluded
 
 

@@ -98,15 +98,26 @@ def grid_plate(scene):
     return render_grid(scene, "production", **fitting._fit.FINE_GRID).image[..., :3]
 
 
-def test_fit_defaults_use_the_grid_and_recover_tints_and_a_gain():
+@pytest.fixture(scope="module")
+def true_plate():
+    """A noise-free grid plate of the lens with :data:`TRUE_TINTS`, as finely as the fit's model."""
+    rgb = grid_plate(with_tints(SCENE, TRUE_TINTS))
+    return fitting.Plate(rgb=np.asarray(rgb, np.float64), weight=np.ones((48, 64)), source="grid plate", layer="")
+
+
+@pytest.fixture(scope="module")
+def fine_model():
+    """The model a fit with the defaults builds for :data:`SCENE` (its grid planned for the scene's coatings)."""
+    return grid_flare_model(SCENE, fitting._fit.GRID_QUALITY, **fitting._fit.FINE_GRID)
+
+
+def test_fit_defaults_use_the_grid_and_recover_tints_and_a_gain(true_plate, fine_model):
     """With the fit's defaults (model auto = grid) on noise-free grid plates of the true lens (drawn
     as finely as the fit's model, :data:`fitting._fit.FINE_GRID`; a production-quality plate
     differs from it by a few percent at 64 x 48 and gave a largest error of 0.055): its tints
     within 0.05 where the plate shows them, and, with the tints known, the second light's gain of 1.3. (Tints and gains together are degenerate: all tints x s and all gains
     / s^2 give the same flare, and the fit says so by calling the tints unobservable.)"""
-    rgb = grid_plate(with_tints(SCENE, TRUE_TINTS))
-    plate = fitting.Plate(rgb=np.asarray(rgb, np.float64), weight=np.ones((48, 64)), source="grid plate", layer="")
-    result = fitting.fit(SCENE, plate, params=("coatings",))
+    result = fitting.fit(SCENE, true_plate, params=("coatings",))
     assert result.model == "grid" and result.block == 4 and result.converged
     observable = np.all(result.tint_observable, axis=1)
     assert observable[[4, 7]].all()
@@ -120,10 +131,9 @@ def test_fit_defaults_use_the_grid_and_recover_tints_and_a_gain():
     plate = fitting.Plate(rgb=np.asarray(rgb, np.float64), weight=np.ones((48, 64)), source="brighter plate", layer="")
     # the model the defaults build (planned for the scene's coatings, tints applied per call), and
     # its per-path images per light colour (what a fit of the lights sums), once for both fits
-    model = grid_flare_model(SCENE, fitting._fit.GRID_QUALITY, **fitting._fit.FINE_GRID)
-    result = fitting.fit(with_tints(SCENE, TRUE_TINTS), plate, params=("lights",), fixed=model)
+    result = fitting.fit(with_tints(SCENE, TRUE_TINTS), plate, params=("lights",), fixed=fine_model)
     np.testing.assert_allclose(result.light_gain, [[1.0, 1.0, 1.0], [1.3, 1.3, 1.3]], atol=0.05)
-    joint = fitting.fit(SCENE, plate, params=("coatings", "lights"), fixed=grid_path_images(model, per_light_colour=True))
+    joint = fitting.fit(SCENE, plate, params=("coatings", "lights"), fixed=grid_path_images(fine_model, per_light_colour=True))
     assert joint.model == "path-images"
     assert not np.any(np.all(joint.tint_observable, axis=1))  # the degenerate scale
 
@@ -148,15 +158,13 @@ def test_plates_no_flare_can_match_are_refused_before_the_model_is_built(monkeyp
     fitting._plate.check_fittable(fitting.Plate(rgb=noisy, weight=np.ones((48, 64)), source="noisy.exr", layer=""))
 
 
-def test_final_render_of_a_plate_too_large_to_keep_in_the_stack_is_the_tinted_sum(monkeypatch):
+def test_final_render_of_a_plate_too_large_to_keep_in_the_stack_is_the_tinted_sum(monkeypatch, true_plate, fine_model):
     """Where the path-image stack cannot keep its full-resolution images (FULL_IMAGE_BYTES, here
     set to 0), the fit's render is still their tinted sum (kept on the host), not a re-splat of the
-    grid: equal to the render of a fit that kept them."""
-    rgb = grid_plate(with_tints(SCENE, TRUE_TINTS))
-    plate = fitting.Plate(rgb=np.asarray(rgb, np.float64), weight=np.ones((48, 64)), source="grid plate", layer="")
-    kept = fitting.fit(SCENE, plate, params=("coatings",), max_steps=3)
+    grid: equal to the render of a fit that kept them (both from the model the defaults build)."""
+    kept = fitting.fit(SCENE, true_plate, params=("coatings",), max_steps=3, fixed=fine_model)
     monkeypatch.setattr(fitting._grid_model, "FULL_IMAGE_BYTES", 0)
     monkeypatch.setattr(fitting._fit, "_grid_image", lambda *a, **k: pytest.fail("the final render re-splatted the grid"))
-    summed = fitting.fit(SCENE, plate, params=("coatings",), max_steps=3)
+    summed = fitting.fit(SCENE, true_plate, params=("coatings",), max_steps=3, fixed=fine_model)
     np.testing.assert_allclose(summed.coating_tints, kept.coating_tints, rtol=1e-6)
     np.testing.assert_allclose(summed.render, kept.render, rtol=1e-5, atol=1e-6 * kept.render.max())
