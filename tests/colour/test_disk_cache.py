@@ -39,8 +39,6 @@ def test_a_second_process_reads_the_tables_without_importing_colour_science(tmp_
     assert not second["colour_imported"]
     for key in ("chromaticities", "display", "rgb_response"):
         assert second[key] == first[key], key  # bit for bit: float64 through .npz
-    off = run_tables(tmp_path, JAXFLARE_COLOUR_CACHE="0")
-    assert off["colour_imported"] and off["rgb_response"] == first["rgb_response"]
 
 
 def test_the_cached_tables_equal_colour_sciences(tmp_path, monkeypatch):
@@ -54,7 +52,7 @@ def test_the_cached_tables_equal_colour_sciences(tmp_path, monkeypatch):
         np.testing.assert_array_equal(cached[key], built[key])
 
 
-def test_a_damaged_entry_is_computed_again_and_an_unwritable_folder_skipped(tmp_path, monkeypatch):
+def test_a_damaged_entry_is_computed_again_an_unwritable_folder_skipped_and_the_cache_can_be_off(tmp_path, monkeypatch):
     calls = []
 
     @_disk_cache.persisted
@@ -80,3 +78,7 @@ def test_a_damaged_entry_is_computed_again_and_an_unwritable_folder_skipped(tmp_
     monkeypatch.setenv("JAXFLARE_CACHE_DIR", str(blocked))
     np.testing.assert_array_equal(matrices(3.0)[0], np.eye(3) * 3.0)
     assert not any(p.suffix == ".tmp" for p in tmp_path.rglob("*"))
+    monkeypatch.setenv("JAXFLARE_CACHE_DIR", str(tmp_path / "off"))
+    monkeypatch.setenv("JAXFLARE_COLOUR_CACHE", "0")
+    matrices(4.0), matrices(4.0)
+    assert calls[-2:] == [4.0, 4.0] and not (tmp_path / "off").exists()
