@@ -16,6 +16,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from ._cache_dirs import switched_off
+
 MIN_COMPILE_TIME_S = 0.0
 """Programs that compile faster than this are not written to the cache. Zero: a grid render
 compiles some 80 small programs (host-side planning, table building) that each take well under
@@ -25,7 +27,7 @@ compiles some 80 small programs (host-side planning, table building) that each t
 
 def compilation_cache_dir() -> Path | None:
     """The folder the CLI caches compiled programs in, or None when caching is off."""
-    if os.environ.get("JAXFLARE_COMPILATION_CACHE", "1").strip().lower() in {"0", "false", "no", "off"}:
+    if switched_off("JAXFLARE_COMPILATION_CACHE"):
         return None
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
         return Path(os.environ["JAX_COMPILATION_CACHE_DIR"])

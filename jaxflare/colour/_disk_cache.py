@@ -4,8 +4,8 @@ Importing colour-science takes 1.5-2 s (colour 0.4 imports its plotting module, 
 matplotlib and scipy's interpolation), a large part of what a fresh ``jaxflare render`` of a small
 preview waits for. What jaxflare derives from it (the spectral tables, colour-space matrices,
 chromaticities) is a few kilobytes of float64 numbers: :func:`persisted` computes each once with
-colour-science and keeps it in ``<cache folder>/colour`` (the folder of
-:func:`jaxflare.polynomial.default_cache_dir`: ``$JAXFLARE_CACHE_DIR``, else
+colour-science and keeps it in ``<cache folder>/colour`` (the folder of the
+path systems, :func:`jaxflare._cache_dirs.cache_root`: ``$JAXFLARE_CACHE_DIR``, else
 ``$XDG_CACHE_HOME/jaxflare``, else ``~/.cache/jaxflare``).
 
 An entry is keyed by the function, its arguments, the installed colour-science version and the
@@ -17,6 +17,7 @@ saves time. ``JAXFLARE_COLOUR_CACHE=0`` turns it off.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import importlib.metadata
@@ -27,17 +28,14 @@ from pathlib import Path
 
 import numpy as np
 
+from .._cache_dirs import cache_root, switched_off
+
 FORMAT = 1
 """Bumped when the file layout changes."""
 
 
 def _cache_folder() -> Path | None:
-    if os.environ.get("JAXFLARE_COLOUR_CACHE", "1").strip().lower() in {"0", "false", "no", "off"}:
-        return None
-    if os.environ.get("JAXFLARE_CACHE_DIR"):
-        return Path(os.environ["JAXFLARE_CACHE_DIR"]) / "colour"
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "jaxflare" / "colour"
+    return None if switched_off("JAXFLARE_COLOUR_CACHE") else cache_root() / "colour"
 
 
 @functools.cache
@@ -89,16 +87,17 @@ def persisted(function):
         except (OSError, ValueError, KeyError):
             pass  # absent or unreadable: compute it
         value = function(*args)
+        temporary = None
         try:
             folder.mkdir(parents=True, exist_ok=True)
             with tempfile.NamedTemporaryFile(dir=folder, suffix=".npz.tmp", delete=False) as handle:
+                temporary = handle.name
                 np.savez(handle, **_pack(value))
-            os.replace(handle.name, path)
-        except OSError:
-            try:
-                os.unlink(handle.name)
-            except (OSError, NameError):
-                pass
+            os.replace(temporary, path)
+        except OSError:  # an unwritable folder: the cache only saves time
+            if temporary is not None:
+                with contextlib.suppress(OSError):
+                    os.unlink(temporary)
         return value
 
     return cached

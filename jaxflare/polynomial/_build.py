@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._version import __version__
+from .._cache_dirs import cache_root
 from ..io import write_bytes_atomic
 from ..optics import GhostPath, Lens, cast_floating, check_ghost_path, ghost_paths, half_field_of_view_deg
 from ._basis import monomial_exponents
@@ -53,10 +54,7 @@ def _lens_key(lens: Lens) -> str:
 
 def default_cache_dir() -> Path:
     """``$JAXFLARE_CACHE_DIR``, else ``$XDG_CACHE_HOME/jaxflare``, else ``~/.cache/jaxflare``."""
-    if os.environ.get("JAXFLARE_CACHE_DIR"):
-        return Path(os.environ["JAXFLARE_CACHE_DIR"])
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "jaxflare"
+    return cache_root()
 
 
 def path_system(
