@@ -46,6 +46,7 @@ from ._forward import (
     FixedSamples,
     PathImages,
     _path_tints,
+    fixed_path_images,
     fixed_samples,
     flare_render,
     path_image_model,
@@ -648,6 +649,11 @@ def _plate_model(scene, plate: Plate, fixed, model: str, params, block: int, *, 
         fixed = reweighted(fixed, plate.weight, block)
     elif isinstance(fixed, PathImages) and fixed.block != block:
         raise ValueError(f"the path images given were made for block {fixed.block} (without full-resolution images), not block {block}")
+    if isinstance(fixed, FixedSamples) and "dirt" not in params:
+        # with the dirt map fixed the samples' image is a tinted sum of their per-path images:
+        # the same model, and a step's Jacobian no longer re-splats every sample per parameter
+        images = fixed_path_images(fixed, pixel_weight=plate.weight, block=block, per_light_colour="lights" in params)
+        fixed = fixed if images is None else images
     return _BuiltModel(fixed, None, samples)
 
 

@@ -207,6 +207,47 @@ def path_images(
     )
 
 
+def fixed_path_images(samples: FixedSamples, *, pixel_weight: np.ndarray | None = None, block: int = 1, per_light_colour: bool = False) -> PathImages | None:
+    """The per-path images of fixed samples (unit tints, the scene's dirt map), with the
+    full-resolution images kept: :func:`path_image_model` of them equals :func:`render_image` of
+    the samples for any tints and light gains (both are linear in them), so a fit of coatings and
+    lights that is given samples solves on the images instead, and each step's Jacobian is a
+    contraction of a small stack instead of a pass over every sample per parameter. None when the
+    full-resolution stack would exceed :data:`FULL_IMAGE_BYTES`."""
+    width, height = samples.resolution
+    if height % block or width % block:
+        raise ValueError(f"block must divide the resolution {width} x {height}, got {block}")
+    setup, records = samples.setup, samples.records
+    flare_paths = np.flatnonzero(np.asarray(samples.flare))
+    num_lights = int(setup.lights.kind.shape[0])
+    num_bases = 3 * num_lights if per_light_colour else 1
+    if len(flare_paths) * num_bases * height * width * 3 * 4 > FULL_IMAGE_BYTES:
+        return None
+    flare_slot = np.full(int(samples.flare.shape[0]), -1, np.int32)
+    flare_slot[flare_paths] = np.arange(len(flare_paths))
+    gains = jnp.asarray(_unit_gains(num_lights, per_light_colour), jnp.float32)
+    buffer = _splat_path_images(records, setup, jnp.asarray(flare_slot), gains, jnp.zeros((len(flare_paths) * num_bases, height, width, 3), jnp.float32))
+    full = np.asarray(buffer).reshape(len(flare_paths), num_bases, height, width, 3) * np.float32(samples.to_radiance)
+    weight = np.ones((height, width)) if pixel_weight is None else np.asarray(pixel_weight)
+    return PathImages(
+        images=jnp.asarray(_weighted_blocks(full, weight, block)), full_images=jnp.asarray(full),
+        path_interfaces=samples.path_interfaces[flare_paths], block=block, resolution=(width, height), num_interfaces=samples.num_interfaces,
+        num_lights=num_lights, samples=int(records.path.shape[0]), seed=0, method="fixed-samples", quality="", paths=None,
+    )
+
+
+@eqx.filter_jit
+def _splat_path_images(records: SampleRecords, setup, slot, gains, buffer):
+    """Splat every sample with unit tints into its flare path's image, once per gain basis."""
+    keep = records.hit & (slot[records.path] >= 0)
+    ones = jnp.ones_like(setup.path_tint)
+    for k in range(gains.shape[0]):
+        values = record_values(records, _gained_lights(setup.lights, gains[k]), setup.spectral, setup.path_fresnel, ones, setup.effects.dirt, setup.front.radius_mm)
+        layer = jnp.clip(slot[records.path], 0) * gains.shape[0] + k
+        buffer = splat(buffer, layer, records.column, records.row, values, keep)
+    return buffer
+
+
 def _weighted_blocks(full, pixel_weight, block: int) -> np.ndarray:
     num_paths, num_bases, height, width, _ = full.shape
     weighted = np.asarray(full, np.float64) * np.asarray(pixel_weight, np.float64)[:, :, None]

@@ -42,6 +42,24 @@ def test_forward_model_reproduces_the_renderer(samples):
     assert image.min() < 0 <= render.image.min()
 
 
+def test_per_path_images_of_the_samples_equal_their_render_for_any_tints_and_gains(samples):
+    """A fit of coatings and lights given samples solves on their per-path images: the tinted,
+    gained sum of those images is the samples' own render (both linear in tints and gains)."""
+    from fitting._forward import fixed_path_images, path_image_model
+
+    images = fixed_path_images(samples, per_light_colour=True)
+    rng = np.random.default_rng(3)
+    for _ in range(2):
+        tints, gain = rng.uniform(0.2, 1.5, (10, 3)), rng.uniform(0.5, 2.0, (1, 3))
+        direct = np.asarray(render_image(samples, jnp.asarray(tints, jnp.float32), None, jnp.asarray(gain, jnp.float32)), np.float64)
+        summed = np.asarray(path_image_model(images, jnp.asarray(tints), jnp.asarray(gain), full=True), np.float64)
+        np.testing.assert_allclose(summed, direct, rtol=1e-4, atol=1e-6 * np.abs(direct).max())
+    blocks = fixed_path_images(samples, pixel_weight=np.full((48, 64), 0.5), block=4)
+    assert blocks.images.shape == (images.images.shape[0], 1, 12, 16, 3)
+    # weighted block sums of the unit-gain images: half of their light, summed per 4 x 4 block
+    np.testing.assert_allclose(np.asarray(blocks.images).sum(), 0.5 * np.asarray(blocks.full_images, np.float64).sum(), rtol=1e-5)
+
+
 @pytest.mark.parametrize("solver", ["gauss-newton", "levenberg-marquardt", "bfgs"])
 def test_coating_colours_are_recovered_with_common_random_numbers(samples, solver):
     """With the plate's own samples (no Monte Carlo difference) every solver finds the true tints."""
