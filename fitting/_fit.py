@@ -70,6 +70,7 @@ from ._grid_model import (
 from ._levenberg_marquardt import LevenbergMarquardt
 from ._physical_termination import GaussNewton
 from ._plate import Plate, check_fittable
+from ._sample_images import sample_dirt_images
 from ._thin_film import INDEX_PRIOR_WEIGHT, FilmLayers, air_side_stacks, equivalent_tints, film_arrays, film_layers, film_start_logits, film_values
 
 
@@ -603,12 +604,14 @@ def _shared_lens_interfaces(scenes) -> int:
 @dataclasses.dataclass
 class _BuiltModel:
     forward: object
-    """What the fit evaluates: a GridFlareModel (dirt fitted), PathImages or FixedSamples."""
+    """What the fit evaluates: a GridFlareModel (dirt fitted), PathImages, DirtImages or FixedSamples."""
     grid: GridFlareModel | None
     samples: int
     full_images: np.ndarray | None = None
     """Per-path full-resolution images on the host (P, K, H, W, 3) float32, where the forward
     model's own stack does not keep them: the final render is their tinted sum."""
+    fixed_samples: FixedSamples | None = None
+    """The samples a per-dirt-cell image stack was made from: the final render splats them."""
 
 
 def _plate_model(scene, plate: Plate, fixed, model: str, params, block: int, *, samples, seed, method, paths, grid_quality, dirt_shape=(16, 16)) -> _BuiltModel:
@@ -649,11 +652,16 @@ def _plate_model(scene, plate: Plate, fixed, model: str, params, block: int, *, 
         fixed = reweighted(fixed, plate.weight, block)
     elif isinstance(fixed, PathImages) and fixed.block != block:
         raise ValueError(f"the path images given were made for block {fixed.block} (without full-resolution images), not block {block}")
-    if isinstance(fixed, FixedSamples) and "dirt" not in params:
-        # with the dirt map fixed the samples' image is a tinted sum of their per-path images:
-        # the same model, and a step's Jacobian no longer re-splats every sample per parameter
-        images = fixed_path_images(fixed, pixel_weight=plate.weight, block=block, per_light_colour="lights" in params)
-        fixed = fixed if images is None else images
+    if isinstance(fixed, FixedSamples):
+        # the samples' image is a tinted (and dirt-weighted) sum of their per-path (per-dirt-cell)
+        # images: the same model, and a step's Jacobian no longer re-splats every sample per parameter
+        per_light = "lights" in params
+        if "dirt" in params:
+            images = sample_dirt_images(fixed, dirt_shape, plate.weight, block, per_light_colour=per_light)
+        else:
+            images = fixed_path_images(fixed, pixel_weight=plate.weight, block=block, per_light_colour=per_light)
+        if images is not None:
+            return _BuiltModel(images, None, samples, fixed_samples=fixed)
     return _BuiltModel(fixed, None, samples)
 
 
@@ -689,7 +697,9 @@ def _final_image(built: _BuiltModel, forward, scene, tints, dirt, gain, film=Non
     if built.grid is not None:
         path_tint = _path_tints(jnp.asarray(grid_interfaces(built.grid)), jnp.asarray(tints))
         return np.asarray(_grid_image(built.grid, path_tint, None if dirt is None else jnp.asarray(dirt), gain), np.float64)
-    if isinstance(forward, PathImages):
+    if built.fixed_samples is not None and not isinstance(forward, PathImages):  # per-dirt-cell images of samples
+        forward = cast_floating(built.fixed_samples, jnp.float64)
+    elif isinstance(forward, PathImages):
         fixed = built.forward
         return flare_render(scene, tints, gain, samples=fixed.samples, seed=fixed.seed, method=fixed.method, quality=fixed.quality, paths=fixed.paths)
     return np.asarray(render_image(forward, jnp.asarray(tints), None if dirt is None else jnp.asarray(dirt), jnp.ones((_num_lights(forward), 3)) if gain is None else gain))

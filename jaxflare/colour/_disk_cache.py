@@ -22,12 +22,12 @@ import functools
 import hashlib
 import importlib.metadata
 import inspect
-import os
-import tempfile
+import io
 from pathlib import Path
 
 import numpy as np
 
+from .._atomic import write_bytes_atomic
 from .._cache_dirs import cache_root, switched_off
 
 FORMAT = 1
@@ -87,17 +87,10 @@ def persisted(function):
         except (OSError, ValueError, KeyError):
             pass  # absent or unreadable: compute it
         value = function(*args)
-        temporary = None
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-            with tempfile.NamedTemporaryFile(dir=folder, suffix=".npz.tmp", delete=False) as handle:
-                temporary = handle.name
-                np.savez(handle, **_pack(value))
-            os.replace(temporary, path)
-        except OSError:  # an unwritable folder: the cache only saves time
-            if temporary is not None:
-                with contextlib.suppress(OSError):
-                    os.unlink(temporary)
+        buffer = io.BytesIO()
+        np.savez(buffer, **_pack(value))
+        with contextlib.suppress(OSError):  # an unwritable folder: the cache only saves time
+            write_bytes_atomic(path, buffer.getvalue())
         return value
 
     return cached

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from ._atomic import atomic_output_group, atomic_output_path, write_bytes_atomic, write_text_atomic
+from .._atomic import atomic_output_group, atomic_output_path, write_bytes_atomic, write_text_atomic
 from ._lens_files import (
     SEMI_APERTURE_MODES,
     apply_glass_aliases,

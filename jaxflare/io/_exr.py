@@ -60,7 +60,7 @@ from collections.abc import Mapping
 import numpy as np
 import OpenEXR
 
-from ._atomic import atomic_output_path
+from .._atomic import atomic_output_path
 
 __all__ = ["COMPRESSIONS", "HALF_CLIPPED_ATTRIBUTE", "HALF_MAX", "read_exr", "write_exr"]
 

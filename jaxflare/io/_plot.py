@@ -7,7 +7,7 @@ import os
 
 import numpy as np
 
-from ._atomic import atomic_output_path
+from .._atomic import atomic_output_path
 from ..optics import GhostPath, Lens, active_event_count, path_events, strongest_ghost_path, surface_sag_mm, trace
 
 

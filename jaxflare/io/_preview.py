@@ -27,7 +27,7 @@ import os
 import numpy as np
 
 from ..colour import srgb_encode
-from ._atomic import atomic_output_path
+from .._atomic import atomic_output_path
 
 __all__ = ["REC709_LUMINANCE", "tone_map", "write_png"]
 

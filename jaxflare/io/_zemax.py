@@ -60,7 +60,7 @@ import re
 from decimal import Decimal, InvalidOperation
 
 from ..optics import AIR, LensFormatError, LensPrescription, MediumSpec, SurfaceSpec
-from ._atomic import write_bytes_atomic
+from .._atomic import write_bytes_atomic
 from ._text_input import check_text, read_input_bytes
 
 __all__ = ["decode_zmx_bytes", "parse_zmx", "read_zmx", "write_zmx", "zmx_text"]

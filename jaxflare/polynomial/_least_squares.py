@@ -159,17 +159,31 @@ def _fit_columns_jit(wide: TraceResult, clip_positions, variables, exponents_key
     low = np.flatnonzero(totals <= AUXILIARY_DEGREE)
     if support is None:
         coefficients = jnp.zeros((len(exponents), targets.shape[1]), design.dtype)
-        coefficients = coefficients.at[:, precise].set(weighted_least_squares(design, targets[:, precise], weights, None))
+        precise_fit = weighted_least_squares(design, targets[:, precise], weights, None)
+        coefficients = coefficients.at[:, precise].set(precise_fit)
+        design, targets, weights = _after(precise_fit, design, targets, weights)
         auxiliary_fit = weighted_least_squares(design[:, low], targets[:, auxiliary], weights, None)
         coefficients = coefficients.at[low[:, None], auxiliary[None, :]].set(auxiliary_fit)
     else:
         support = support.at[:, auxiliary].set(support[:, auxiliary] & jnp.asarray(totals <= AUXILIARY_DEGREE)[:, None])
         coefficients = weighted_least_squares(design, targets, weights, support)
+    design, targets, weights = _after(coefficients, design, targets, weights)
     lower = np.flatnonzero(totals < totals.max())
     lower_support = None if support is None else support[lower][:, :2]
     lower_fit = weighted_least_squares(design[:, lower], targets[:, :2], weights, lower_support)
     estimator = coefficients[:, :2].at[lower].add(-lower_fit)
     return coefficients, estimator
+
+
+def _after(done, *later):
+    """``later`` as values that exist only once ``done`` is computed, so that the least-squares
+    solves of one fit run one after another. jaxlib 0.10's CPU LAPACK kernels (Cholesky, here)
+    split their batch over XLA's intra-op thread pool and block a pool thread until it is done:
+    as many independent solves at once as the pool has threads (2 on a 2-core machine) wait for
+    each other for ever. A test run hung there (every thread parked in
+    ``CholeskyFactorization`` -> ``ParallelBatchMap`` -> ``BlockingCounter::Wait``)."""
+    _, later = jax.lax.optimization_barrier((done, later))
+    return later
 
 
 def refit(system: PathSystem, lens: Lens) -> PathSystem:

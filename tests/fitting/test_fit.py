@@ -60,6 +60,24 @@ def test_per_path_images_of_the_samples_equal_their_render_for_any_tints_and_gai
     np.testing.assert_allclose(np.asarray(blocks.images).sum(), 0.5 * np.asarray(blocks.full_images, np.float64).sum(), rtol=1e-5)
 
 
+def test_per_dirt_cell_images_of_the_samples_equal_their_render_for_any_dirt_tints_and_gains(samples):
+    """A dirt fit given samples solves on their per-path, per-dirt-cell images: contracted with a
+    dirt map, tints and gains they give the samples' own render (linear in each), block-summed and
+    weighted like the plate."""
+    from fitting._grid_model import dirt_image_model
+    from fitting._sample_images import sample_dirt_images
+
+    weight = np.random.default_rng(4).uniform(0.5, 1.0, (48, 64))
+    images = sample_dirt_images(samples, (5, 6), weight, block=4, per_light_colour=True)
+    rng = np.random.default_rng(5)
+    for _ in range(2):
+        tints, dirt, gain = rng.uniform(0.2, 1.5, (10, 3)), rng.uniform(0.0, 1.0, (5, 6, 1)), rng.uniform(0.5, 2.0, (1, 3))
+        direct = np.asarray(render_image(samples, *(jnp.asarray(a, jnp.float32) for a in (tints, dirt, gain))), np.float64)
+        pooled = (direct * weight[..., None]).reshape(12, 4, 16, 4, 3).sum(axis=(1, 3))
+        summed = np.asarray(dirt_image_model(images, jnp.asarray(tints), jnp.asarray(dirt), jnp.asarray(gain)))
+        np.testing.assert_allclose(summed, pooled, rtol=1e-4, atol=1e-6 * np.abs(pooled).max())
+
+
 @pytest.mark.parametrize("solver", ["gauss-newton", "levenberg-marquardt", "bfgs"])
 def test_coating_colours_are_recovered_with_common_random_numbers(samples, solver):
     """With the plate's own samples (no Monte Carlo difference) every solver finds the true tints."""

@@ -1,4 +1,4 @@
-"""Atomic outputs (jaxflare.io._atomic): a reader never sees a half-written file, nor an EXR and
+"""Atomic outputs (jaxflare._atomic, re-exported by jaxflare.io): a reader never sees a half-written file, nor an EXR and
 its PNG (or a fit's JSON and its render) from two different runs; nothing temporary is left."""
 
 import os

@@ -1,4 +1,7 @@
-"""Atomic file output: write to a temporary file beside the target, then rename over it."""
+"""Atomic file output: write to a temporary file beside the target, then rename over it.
+
+Below every stage (no jaxflare imports): :mod:`jaxflare.io` re-exports it, and the colour tables'
+disk cache, below :mod:`jaxflare.io` in the layer contract, writes its entries with it."""
 
 from __future__ import annotations
 
