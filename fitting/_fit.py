@@ -359,7 +359,9 @@ def fit(
     :data:`~fitting._forward.PATH_IMAGE_BYTES`, else by re-splatting its fixed sub-samples);
     ``"path-images"`` renders each flare path once with Monte Carlo, ``samples`` samples (default
     2**22), and fits their tinted sum (coatings and lights only); ``"samples"`` keeps the
-    ``samples`` Monte Carlo samples (default 2**19) themselves; ``"auto"`` picks the grid unless
+    ``samples`` Monte Carlo samples (default 2**19) themselves and solves on their per-path images
+    (per path and dirt cell when the dirt map is fitted; :func:`~fitting._forward.fixed_path_images`,
+    :func:`~fitting._sample_images.sample_dirt_images`), which equal their render; ``"auto"`` picks the grid unless
     ``samples`` is given or ``method`` is not ``"exact"`` (Monte Carlo is then asked for), and then
     path images when it can. ``block`` > 1 compares sums over ``block`` x ``block`` pixels (default
     :func:`default_block`): a plate's noise and the model's sub-pixel error average out in them,
