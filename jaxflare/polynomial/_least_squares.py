@@ -86,6 +86,36 @@ def _output_matrix(result: TraceResult, clip_positions: Array) -> Array:
     return jnp.stack(columns, axis=-1)
 
 
+def spd_solve(matrix: Array, rhs: Array) -> Array:
+    """``matrix^-1 rhs`` for a symmetric positive definite ``matrix`` (M, M) and ``rhs`` (M, K), by
+    Cholesky factorisation and two triangular solves written as plain XLA loops, differentiable
+    through ``lax.custom_linear_solve`` (the derivative solves the same system again).
+
+    Not LAPACK: jaxlib 0.10's CPU LAPACK kernels split a batched call over XLA's intra-op thread
+    pool and block a pool thread until it is done, so as many calls at once as the pool has
+    threads (2 on a 2-core machine: two solves of one fit, or two fits dispatched back to back)
+    wait for each other for ever. Test runs hung there twice, every pool thread parked in
+    ``CholeskyFactorization`` -> ``ParallelBatchMap`` -> ``BlockingCounter::Wait``. The loops
+    cost O(M^3) like LAPACK's factorisation (M is a few hundred monomials)."""
+    size = matrix.shape[-1]
+    index = jnp.arange(size)
+
+    def factor(k, lower):  # right-looking: column k of L, then its rank-1 update of the rest
+        work, chol = lower
+        pivot = jnp.sqrt(work[k, k])
+        column = jnp.where(index >= k, work[:, k] / pivot, 0.0)
+        return work - jnp.outer(column, column), chol.at[:, k].set(column)
+
+    def solve(_, b):
+        _, chol = jax.lax.fori_loop(0, size, factor, (matrix, jnp.zeros_like(matrix)))
+        forward = lambda k, y: y.at[k].set((b[k] - chol[k] @ y) / chol[k, k])  # noqa: E731  L y = b
+        y = jax.lax.fori_loop(0, size, forward, jnp.zeros_like(b))
+        backward = lambda j, x: x.at[size - 1 - j].set((y[size - 1 - j] - chol[:, size - 1 - j] @ x) / chol[size - 1 - j, size - 1 - j])  # noqa: E731
+        return jax.lax.fori_loop(0, size, backward, jnp.zeros_like(b))  # L^T x = y
+
+    return jax.lax.custom_linear_solve(lambda x: matrix @ x, rhs, solve, symmetric=True)
+
+
 def weighted_least_squares(design: Array, targets: Array, weights: Array, support: Array | None) -> Array:
     """Coefficients minimising sum_i w_i |design_i c - targets_i|^2 per output column (normal
     equations with a tiny ridge, Cholesky); ``support`` (M, O) restricts each column's terms."""
@@ -95,14 +125,12 @@ def weighted_least_squares(design: Array, targets: Array, weights: Array, suppor
     ridge = 1e-11 * scale
     rhs = weighted.T @ targets
     if support is None:
-        factor = jax.scipy.linalg.cho_factor(gram + ridge * jnp.eye(gram.shape[0], dtype=gram.dtype))
-        return jax.scipy.linalg.cho_solve(factor, rhs)
+        return spd_solve(gram + ridge * jnp.eye(gram.shape[0], dtype=gram.dtype), rhs)
 
     def solve_one(mask, b):
         m = mask.astype(gram.dtype)
         g = gram * m[:, None] * m[None, :] + jnp.diag(1.0 - m) * scale + ridge * jnp.eye(gram.shape[0], dtype=gram.dtype)
-        factor = jax.scipy.linalg.cho_factor(g)
-        return jax.scipy.linalg.cho_solve(factor, b * m) * m
+        return spd_solve(g, b * m) * m
 
     return jax.vmap(solve_one, in_axes=(1, 1), out_axes=1)(support, rhs)
 
@@ -159,31 +187,17 @@ def _fit_columns_jit(wide: TraceResult, clip_positions, variables, exponents_key
     low = np.flatnonzero(totals <= AUXILIARY_DEGREE)
     if support is None:
         coefficients = jnp.zeros((len(exponents), targets.shape[1]), design.dtype)
-        precise_fit = weighted_least_squares(design, targets[:, precise], weights, None)
-        coefficients = coefficients.at[:, precise].set(precise_fit)
-        design, targets, weights = _after(precise_fit, design, targets, weights)
+        coefficients = coefficients.at[:, precise].set(weighted_least_squares(design, targets[:, precise], weights, None))
         auxiliary_fit = weighted_least_squares(design[:, low], targets[:, auxiliary], weights, None)
         coefficients = coefficients.at[low[:, None], auxiliary[None, :]].set(auxiliary_fit)
     else:
         support = support.at[:, auxiliary].set(support[:, auxiliary] & jnp.asarray(totals <= AUXILIARY_DEGREE)[:, None])
         coefficients = weighted_least_squares(design, targets, weights, support)
-    design, targets, weights = _after(coefficients, design, targets, weights)
     lower = np.flatnonzero(totals < totals.max())
     lower_support = None if support is None else support[lower][:, :2]
     lower_fit = weighted_least_squares(design[:, lower], targets[:, :2], weights, lower_support)
     estimator = coefficients[:, :2].at[lower].add(-lower_fit)
     return coefficients, estimator
-
-
-def _after(done, *later):
-    """``later`` as values that exist only once ``done`` is computed, so that the least-squares
-    solves of one fit run one after another. jaxlib 0.10's CPU LAPACK kernels (Cholesky, here)
-    split their batch over XLA's intra-op thread pool and block a pool thread until it is done:
-    as many independent solves at once as the pool has threads (2 on a 2-core machine) wait for
-    each other for ever. A test run hung there (every thread parked in
-    ``CholeskyFactorization`` -> ``ParallelBatchMap`` -> ``BlockingCounter::Wait``)."""
-    _, later = jax.lax.optimization_barrier((done, later))
-    return later
 
 
 def refit(system: PathSystem, lens: Lens) -> PathSystem:
