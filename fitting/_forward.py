@@ -27,6 +27,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from jaxflare.rendering import SampleRecords, batch_records, plan_render, radiance_scale, record_values, splat
+from jaxflare.rendering.effects import dirt_cell_taps
 from jaxflare.scenes import load_scene
 
 
@@ -164,24 +165,14 @@ def path_images(
     if height % block or width % block:
         raise ValueError(f"block must divide the resolution {width} x {height}, got {block}")
     weight = jnp.ones((height, width), jnp.float32) if pixel_weight is None else jnp.asarray(pixel_weight, jnp.float32)
-    flare_slot = np.full(len(plan.paths), -1, np.int32)
-    flare_paths = [k for k, p in enumerate(plan.paths) if p is not None]
-    flare_slot[flare_paths] = np.arange(len(flare_paths))
+    flare_paths, slot = _flare_slots(np.array([p is not None for p in plan.paths]))
     num_lights = int(setup.lights.kind.shape[0])
     gains = jnp.asarray(_unit_gains(num_lights, per_light_colour), jnp.float32)
     dirt = setup.effects.dirt if dirt is None else jnp.asarray(dirt, jnp.float32)
-    ones = jnp.ones_like(setup.path_tint)
-    slot = jnp.asarray(flare_slot)
 
-    @eqx.filter_jit
     def accumulate(buffer, batch, splat_weight, splat_block):
         for records in batch:
-            keep = records.hit & (slot[records.path] >= 0)
-            for k in range(gains.shape[0]):
-                lights = _gained_lights(setup.lights, gains[k])
-                values = record_values(records, lights, setup.spectral, setup.path_fresnel, ones, dirt, setup.front.radius_mm)
-                layer = jnp.clip(slot[records.path], 0) * gains.shape[0] + k
-                buffer = splat(buffer, layer, records.column, records.row, values, keep, pixel_weight=splat_weight, block=splat_block)
+            buffer = _splat_unit_images(records, setup, slot, gains, dirt, buffer, splat_weight, splat_block)
         return buffer
 
     num_images = len(flare_paths) * gains.shape[0]
@@ -218,15 +209,14 @@ def fixed_path_images(samples: FixedSamples, *, pixel_weight: np.ndarray | None 
     if height % block or width % block:
         raise ValueError(f"block must divide the resolution {width} x {height}, got {block}")
     setup, records = samples.setup, samples.records
-    flare_paths = np.flatnonzero(np.asarray(samples.flare))
+    flare_paths, slot = _flare_slots(np.asarray(samples.flare))
     num_lights = int(setup.lights.kind.shape[0])
     num_bases = 3 * num_lights if per_light_colour else 1
     if len(flare_paths) * num_bases * height * width * 3 * 4 > FULL_IMAGE_BYTES:
         return None
-    flare_slot = np.full(int(samples.flare.shape[0]), -1, np.int32)
-    flare_slot[flare_paths] = np.arange(len(flare_paths))
     gains = jnp.asarray(_unit_gains(num_lights, per_light_colour), jnp.float32)
-    buffer = _splat_path_images(records, setup, jnp.asarray(flare_slot), gains, jnp.zeros((len(flare_paths) * num_bases, height, width, 3), jnp.float32))
+    buffer = jnp.zeros((len(flare_paths) * num_bases, height, width, 3), jnp.float32)
+    buffer = _splat_unit_images(records, setup, slot, gains, setup.effects.dirt, buffer)
     full = np.asarray(buffer).reshape(len(flare_paths), num_bases, height, width, 3) * np.float32(samples.to_radiance)
     weight = np.ones((height, width)) if pixel_weight is None else np.asarray(pixel_weight)
     return PathImages(
@@ -236,15 +226,35 @@ def fixed_path_images(samples: FixedSamples, *, pixel_weight: np.ndarray | None 
     )
 
 
+def _flare_slots(is_flare: np.ndarray) -> tuple[np.ndarray, Array]:
+    """The flare paths' indices and each path's slot among them (-1 for the core): the layer of
+    its images in a per-path stack."""
+    flare_paths = np.flatnonzero(is_flare)
+    slot = np.full(len(is_flare), -1, np.int32)
+    slot[flare_paths] = np.arange(len(flare_paths))
+    return flare_paths, jnp.asarray(slot)
+
+
 @eqx.filter_jit
-def _splat_path_images(records: SampleRecords, setup, slot, gains, buffer):
-    """Splat every sample with unit tints into its flare path's image, once per gain basis."""
+def _splat_unit_images(records: SampleRecords, setup, slot, gains, dirt, buffer, pixel_weight=None, block: int = 1, dirt_shape=None):
+    """Splat every flare sample with unit tints into its path's image, once per gain basis ``k``
+    (layer ``slot K + k``), weighted by ``pixel_weight`` and summed over ``block`` x ``block``
+    pixels. With ``dirt_shape`` (rows, columns), into per-path, per-dirt-cell images instead (layer
+    ``(slot D + cell) K + k``), each sample weighted by its four bilinear dirt-map taps
+    (:func:`dirt_cell_taps`; pass ``dirt=None``): the images of every one-hot dirt map at once."""
     keep = records.hit & (slot[records.path] >= 0)
     ones = jnp.ones_like(setup.path_tint)
-    for k in range(gains.shape[0]):
-        values = record_values(records, _gained_lights(setup.lights, gains[k]), setup.spectral, setup.path_fresnel, ones, setup.effects.dirt, setup.front.radius_mm)
-        layer = jnp.clip(slot[records.path], 0) * gains.shape[0] + k
-        buffer = splat(buffer, layer, records.column, records.row, values, keep)
+    num_bases = gains.shape[0]
+    if dirt_shape is None:
+        num_cells, taps = 1, [(0, None)]
+    else:
+        num_cells, taps = dirt_shape[0] * dirt_shape[1], dirt_cell_taps(dirt_shape, records.front_xy_mm, setup.front.radius_mm)
+    for k in range(num_bases):
+        values = record_values(records, _gained_lights(setup.lights, gains[k]), setup.spectral, setup.path_fresnel, ones, dirt, setup.front.radius_mm)
+        for cell, tap in taps:
+            layer = (jnp.clip(slot[records.path], 0) * num_cells + cell) * num_bases + k
+            weighted = values if tap is None else values * tap[:, None]
+            buffer = splat(buffer, layer, records.column, records.row, weighted, keep, pixel_weight=pixel_weight, block=block)
     return buffer
 
 

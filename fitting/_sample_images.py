@@ -12,14 +12,10 @@ dirt cell.
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflare.rendering import record_values, splat
-from jaxflare.rendering.effects import dirt_cell_taps
-
-from ._forward import PATH_IMAGE_BYTES, FixedSamples, _gained_lights, _unit_gains
+from ._forward import PATH_IMAGE_BYTES, FixedSamples, _flare_slots, _splat_unit_images, _unit_gains
 from ._grid_model import DirtImages
 
 
@@ -45,33 +41,15 @@ def sample_dirt_images(
     rows, columns = (int(v) for v in dirt_shape)
     if sample_dirt_images_bytes(samples, (rows, columns), block, per_light_colour=per_light_colour) > PATH_IMAGE_BYTES:
         return None
-    flare_paths = np.flatnonzero(np.asarray(samples.flare))
-    flare_slot = np.full(int(samples.flare.shape[0]), -1, np.int32)
-    flare_slot[flare_paths] = np.arange(len(flare_paths))
+    flare_paths, slot = _flare_slots(np.asarray(samples.flare))
     num_lights = int(samples.setup.lights.kind.shape[0])
     gains = jnp.asarray(_unit_gains(num_lights, per_light_colour), jnp.float32)
     weight = jnp.ones((height, width), jnp.float32) if pixel_weight is None else jnp.asarray(pixel_weight, jnp.float32)
     num_cells, num_bases = rows * columns, int(gains.shape[0])
     buffer = jnp.zeros((len(flare_paths) * num_cells * num_bases, height // block, width // block, 3), jnp.float32)
-    buffer = _splat_cells(samples, (rows, columns), jnp.asarray(flare_slot), gains, weight, buffer, block)
+    buffer = _splat_unit_images(samples.records, samples.setup, slot, gains, None, buffer, weight, block, (rows, columns))
     images = np.asarray(buffer, np.float64).reshape(len(flare_paths), num_cells, num_bases, height // block, width // block, 3)
     return DirtImages(
         images=jnp.asarray(images * float(samples.to_radiance)), dirt_shape=(rows, columns),
         path_interfaces=samples.path_interfaces[flare_paths], num_lights=num_lights,
     )
-
-
-@eqx.filter_jit
-def _splat_cells(samples: FixedSamples, dirt_shape: tuple[int, int], slot, gains, weight, buffer, block: int):
-    setup, records = samples.setup, samples.records
-    keep = records.hit & (slot[records.path] >= 0)
-    ones = jnp.ones_like(setup.path_tint)
-    num_cells, num_bases = dirt_shape[0] * dirt_shape[1], gains.shape[0]
-    taps = dirt_cell_taps(dirt_shape, records.front_xy_mm, setup.front.radius_mm)
-    for k in range(num_bases):
-        lights = _gained_lights(setup.lights, gains[k])
-        values = record_values(records, lights, setup.spectral, setup.path_fresnel, ones, None, setup.front.radius_mm)
-        for cell, tap in taps:
-            layer = (jnp.clip(slot[records.path], 0) * num_cells + cell) * num_bases + k
-            buffer = splat(buffer, layer, records.column, records.row, values * tap[:, None], keep, pixel_weight=weight, block=block)
-    return buffer
