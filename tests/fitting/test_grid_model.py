@@ -131,9 +131,10 @@ def test_fit_defaults_use_the_grid_and_recover_tints_and_a_gain(true_plate, fine
     plate = fitting.Plate(rgb=np.asarray(rgb, np.float64), weight=np.ones((48, 64)), source="brighter plate", layer="")
     # the model the defaults build (planned for the scene's coatings, tints applied per call), and
     # its per-path images per light colour (what a fit of the lights sums), once for both fits
-    result = fitting.fit(with_tints(SCENE, TRUE_TINTS), plate, params=("lights",), fixed=fine_model)
+    per_light_colour = grid_path_images(fine_model, per_light_colour=True)
+    result = fitting.fit(with_tints(SCENE, TRUE_TINTS), plate, params=("lights",), fixed=per_light_colour)
     np.testing.assert_allclose(result.light_gain, [[1.0, 1.0, 1.0], [1.3, 1.3, 1.3]], atol=0.05)
-    joint = fitting.fit(SCENE, plate, params=("coatings", "lights"), fixed=grid_path_images(fine_model, per_light_colour=True))
+    joint = fitting.fit(SCENE, plate, params=("coatings", "lights"), fixed=per_light_colour)
     assert joint.model == "path-images"
     assert not np.any(np.all(joint.tint_observable, axis=1))  # the degenerate scale
 

@@ -89,3 +89,33 @@ def test_intersect_gives_a_missing_ray_its_own_origin():
     assert not bool(hit[0])
     np.testing.assert_array_equal(np.stack(point, axis=-1), np.stack(origin, axis=-1))
     np.testing.assert_array_equal(np.stack(normal, axis=-1), [[0.0, 0.0, -1.0]])
+
+
+def test_asphere_hit_gradients_equal_finite_differences():
+    """The Newton root's derivative (the implicit function theorem at the root, not the unrolled
+    iterations) equals central finite differences of the traced sensor position in float64, with
+    respect to the ray's height, the asphere's A4 and A6 coefficients and its conic constant."""
+    lens = lens_from_toml(ASPHERE)
+    origins, directions = _rays(64, 3.0, 0.02, seed=5)
+    origins, directions = jnp.asarray(origins), jnp.asarray(directions)
+    valid = np.asarray(jaxflare.trace(lens, origins, directions, 550.0).valid)
+    assert valid.sum() >= 32
+    weight = jnp.asarray(np.where(valid, 1.0, 0.0))
+
+    def sensor(height, a4, a6, conic):
+        moved = eqx.tree_at(
+            lambda l: (l.aspheric_coefficients, l.conic), lens,
+            (lens.aspheric_coefficients.at[0, 0].add(a4).at[0, 1].add(a6), lens.conic.at[0].add(conic)),
+        )
+        result = jaxflare.trace(moved, origins.at[:, 1].add(height), directions, 550.0)
+        return jnp.sum(weight * (result.positions[:, 0] + 2.0 * result.positions[:, 1]))
+
+    at = (0.0, 0.0, 0.0, 0.0)
+    gradient = np.asarray(jax.jit(jax.grad(sensor, argnums=(0, 1, 2, 3)))(*at))
+    value = jax.jit(sensor)
+    for k, step in enumerate((1e-4, 1e-9, 1e-11, 1e-5)):
+        plus, minus = list(at), list(at)
+        plus[k], minus[k] = step, -step
+        finite = (float(value(*plus)) - float(value(*minus))) / (2 * step)
+        np.testing.assert_allclose(gradient[k], finite, rtol=1e-5, atol=1e-9 * abs(finite) + 1e-12)
+        assert abs(finite) > 0, k
