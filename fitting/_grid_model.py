@@ -97,14 +97,29 @@ def film_images_bytes(flare: GridFlareModel, block: int, *, per_light_colour: bo
     return _stack_bytes(flare, knots.size, block, per_light_colour)
 
 
+FILM_PASS_BYTES = 2**28
+"""Largest packed-image buffer (float32) of one pass of :func:`grid_film_images`: as many
+spectral knots (times light-gain bases) as fit are colour planes of one pass over the sub-samples."""
+
+
 def grid_film_images(flare: GridFlareModel, pixel_weight=None, block: int = 1, *, per_light_colour: bool = False) -> FilmImages:
-    """The knot images of ``flare`` (:meth:`GridFlareModel.path_knot_images`, one splat per knot
-    and gain basis) weighted by ``pixel_weight`` and summed over ``block`` x ``block`` as they are made."""
+    """The knot images of ``flare`` (:meth:`GridFlareModel.path_knot_images`: the knots and gain
+    bases as colour planes, as many per pass over the sub-samples as fit in
+    :data:`FILM_PASS_BYTES`) weighted by ``pixel_weight`` and summed over ``block`` x ``block`` as
+    they are made."""
     _check_block(flare, block)
-    knots, fresnels = flare.knot_fresnels()
-    stacks = [_pooled_stack(flare, pixel_weight, block, per_light_colour, lambda g: flare.per_path_image(None, g, fresnel)) for fresnel in fresnels]
+    knots, _ = flare.knot_fresnels()
+    width, height = flare.resolution
+    weight = np.ones((height, width)) if pixel_weight is None else np.asarray(pixel_weight, np.float64)
+    bases = 3 * flare.num_lights if per_light_colour else 1
+    group = int(np.clip(FILM_PASS_BYTES // (bases * (flare.num_paths * flare.layer_bytes + flare.atlas_bytes)), 1, knots.size))
+    stacks = []
+    for first in range(0, knots.size, group):
+        images, _ = flare.path_knot_images(per_light_colour=per_light_colour, knot_slice=slice(first, first + group))  # (P, b, K, H, W, 3)
+        images = np.asarray(images, np.float32)
+        stacks.append(_weighted_blocks(images.reshape((-1,) + images.shape[2:]), weight, block).reshape(images.shape[:2] + (bases, height // block, width // block, 3)))
     return FilmImages(
-        images=jnp.asarray(np.stack(stacks, axis=1)), knots=tuple(int(k) for k in knots),
+        images=jnp.asarray(np.concatenate(stacks, axis=1)), knots=tuple(int(k) for k in knots),
         path_interfaces=jnp.asarray(grid_interfaces(flare)), num_lights=flare.num_lights,
     )
 
@@ -145,34 +160,36 @@ cell; one splat per one-hot map took 1.37 s a cell."""
 
 
 @eqx.filter_jit
-def _cell_blocks(flare: GridFlareModel, dirt_shape, first, count: int, gain, weight, block: int):
-    """The run's dirt-cell images, weighted per pixel and summed over ``block`` x ``block`` pixels
-    in the compiled program (the full-resolution images never leave it): (P, count, h, w, 3)."""
-    images = flare.per_path_cell_images(dirt_shape, first, count, gain) * weight[:, :, None]
-    paths, cells, height, width, _ = images.shape
-    return images.reshape(paths, cells, height // block, block, width // block, block, 3).sum(axis=(3, 5))
+def _cell_blocks(flare: GridFlareModel, dirt_shape, first, count: int, per_light_colour: bool, weight, block: int):
+    """The run's dirt-cell images (per light-gain basis with ``per_light_colour``, in the same
+    pass), weighted per pixel and summed over ``block`` x ``block`` pixels in the compiled
+    program (the full-resolution images never leave it): (P, count, K, h, w, 3)."""
+    images = flare.per_path_cell_images(dirt_shape, first, count, per_light_colour=True) if per_light_colour else (
+        flare.per_path_cell_images(dirt_shape, first, count)[:, :, None]
+    )
+    images = images * weight[:, :, None]
+    paths, cells, bases, height, width, _ = images.shape
+    return images.reshape(paths, cells, bases, height // block, block, width // block, block, 3).sum(axis=(4, 6))
 
 
 def grid_dirt_images(flare: GridFlareModel, dirt_shape, pixel_weight=None, block: int = 1, *, per_light_colour: bool = False) -> DirtImages:
     """The one-hot dirt-cell images of ``flare`` (:meth:`GridFlareModel.per_path_cell_images`:
-    one pass over the sub-samples per gain basis and run of cells that fits in
-    :data:`DIRT_RUN_BYTES`), weighted by ``pixel_weight`` and summed over ``block`` x ``block``
+    one pass over the sub-samples per run of cells that fits in :data:`DIRT_RUN_BYTES`, every
+    light-gain basis a colour plane of the pass), weighted by ``pixel_weight`` and summed over ``block`` x ``block``
     pixels as they are made."""
     _check_block(flare, block)
     rows, columns = (int(v) for v in dirt_shape)
     num_cells = rows * columns
     width, height = flare.resolution
-    run = int(np.clip(DIRT_RUN_BYTES // (flare.num_paths * flare.layer_bytes + flare.atlas_bytes), 1, num_cells))
+    bases = 3 * flare.num_lights if per_light_colour else 1  # colour planes of each pass
+    run = int(np.clip(DIRT_RUN_BYTES // (bases * (flare.num_paths * flare.layer_bytes + flare.atlas_bytes)), 1, num_cells))
     weight = jnp.ones((height, width), jnp.float32) if pixel_weight is None else jnp.asarray(pixel_weight, jnp.float32)
-    gains = [None] if not per_light_colour else [jnp.asarray(g, jnp.float32) for g in gain_basis(flare.num_lights)]
-    per_gain = []
-    for gain in gains:
-        # every run as long as the first (the last one padded with empty cells): one compiled splat
-        runs = [np.asarray(_cell_blocks(flare, (rows, columns), jnp.asarray(first, jnp.int32), run, gain, weight, block))
-                for first in range(0, num_cells, run)]
-        per_gain.append(np.concatenate(runs, axis=1)[:, :num_cells].astype(np.float64))  # (P, D, h, w, 3)
+    # every run as long as the first (the last one padded with empty cells): one compiled splat
+    runs = [np.asarray(_cell_blocks(flare, (rows, columns), jnp.asarray(first, jnp.int32), run, per_light_colour, weight, block))
+            for first in range(0, num_cells, run)]
+    images = np.concatenate(runs, axis=1)[:, :num_cells].astype(np.float64)  # (P, D, K, h, w, 3)
     return DirtImages(
-        images=jnp.asarray(np.stack(per_gain, axis=2)), dirt_shape=(rows, columns), path_interfaces=jnp.asarray(grid_interfaces(flare)),
+        images=jnp.asarray(images), dirt_shape=(rows, columns), path_interfaces=jnp.asarray(grid_interfaces(flare)),
         num_lights=flare.num_lights,
     )
 

@@ -182,7 +182,7 @@ def blurred_slots(atlas: Float[Array, "A 3"], slots: BlurSlots, width: int, heig
     for (level_index, border, count, offset), kernels in zip(slots.groups, slots.kernels):
         _, _, h, w = layout[level_index]
         hs, ws = h + 2 * border, w + 2 * border
-        slot_images = atlas[offset : offset + count * hs * ws].reshape(count, hs, ws, 3)
+        slot_images = atlas[offset : offset + count * hs * ws].reshape(count, hs, ws, atlas.shape[-1])
         size = 2 * border + 1
         padded = jnp.zeros((count, hs, ws), atlas.dtype).at[:, :size, :size].set(kernels.astype(atlas.dtype))
         padded = jnp.roll(padded, (-border, -border), axis=(1, 2))  # index 0: no move
@@ -207,5 +207,5 @@ def add_blurred_slots(
     for (level_index, _, count, _), slot_job, group in zip(slots.groups, slots.slot_job, images):
         row0, column0, h, w = layout[level_index]
         target = (layer[slot_job][None, :] * copies + jnp.arange(copies)[:, None]).reshape(-1)
-        buffer = buffer.at[target, row0 : row0 + h, column0 : column0 + w].add(group.reshape(copies * count, h, w, 3).astype(buffer.dtype))
+        buffer = buffer.at[target, row0 : row0 + h, column0 : column0 + w].add(group.reshape(copies * count, h, w, buffer.shape[-1]).astype(buffer.dtype))
     return buffer

@@ -109,10 +109,12 @@ class JobTable(eqx.Module):
     interleave: Int[Array, " J"]
     """1: each wavelength sub-node's sub-sample lattice is shifted by its own Kronecker point (their
     union is finer, so each may be sparser); 0: every lattice centred in its cells (symmetric)."""
-    colour: Float[Array, "J M 3"]
+    colour: Float[Array, "J M C"]
     """Per wavelength sub-node of every sub-node choice (:data:`._grid_cells.SUB_NODE_OFFSETS`):
     the light's RGB x (Schlick model) the path's on-axis coated Fresnel factor, averaged over the
-    sub-node's stratum of the band."""
+    sub-node's stratum of the band. ``C`` is 3 for a render; a fit's model may stack several
+    colour planes (RGB each: its light-gain bases or spectral knots), splatted in one pass into
+    buffers of ``C`` channels."""
     blur: BlurSlots | None = None
     """The blurred jobs' slots and kernels (:mod:`._grid_blur`); None: every extended light's
     disc is sampled per sub-sample."""
@@ -210,7 +212,8 @@ class Subsamples(NamedTuple):
     """Image position (full-resolution pixels; pixel centres at integer + 0.5)."""
     row: Array
     value: Array
-    """RGB (N, 3), zero where it misses the image."""
+    """RGB (N, 3), or (N, C) with C / 3 colour planes (:class:`JobTable` ``colour``); zero where it
+    misses the image."""
     hit: Array
     """It gets through and lands on the image (its statistics count)."""
     drawn: Array
@@ -298,12 +301,16 @@ def subsample_values(setup, jobs: JobTable, records: RecordTable, total: Array, 
     share = area / (side * side).astype(jnp.float32) * jobs.weight[job] / sub_nodes.astype(jnp.float32)  # per tile
     path = jobs.path[job]
     offset = jnp.asarray(np.asarray([SUB_NODE_OFFSETS.get(m, 0) for m in range(max(SUB_NODE_OFFSETS) + 1)], np.int32))[sub_nodes]
-    colour = jobs.colour[job, offset + sub_node] * setup.path_tint[path]  # (T, 3)
+    # (T, C): RGB, or RGB per colour plane (a fit's light-gain bases or spectral knots in one pass)
+    colour = jobs.colour[job, offset + sub_node]
+    channels = colour.shape[-1]
+    colour = (colour.reshape(-1, channels // 3, 3) * setup.path_tint[path][:, None, :]).reshape(-1, channels)
     value = keep(colour[:, None, :] * (factor * share[:, None])[..., None])
     flat = num_tiles * TILE
-    value = value.reshape(flat, 3)
+    value = value.reshape(flat, channels)
     if effects.dirt is not None:
-        value = value * dirt_transmission(effects.dirt, q[..., FRONT : FRONT + 2].reshape(flat, 2), setup.front.radius_mm)
+        dirt = dirt_transmission(effects.dirt, q[..., FRONT : FRONT + 2].reshape(flat, 2), setup.front.radius_mm)
+        value = (value.reshape(flat, channels // 3, 3) * dirt[:, None, :]).reshape(flat, channels)
 
     column, row = image_position(setup, moved[..., SENSOR : SENSOR + 2].reshape(flat, 2))
     width, height = setup.resolution
@@ -442,7 +449,7 @@ def splat_subsamples(
     width, height = setup.resolution
     blur = jobs.blur is not None
     flat_layers = blur and dirt_cells is None  # the packed layers and the atlas as one flat array
-    layer_pixels = acc.buffer.size // 3
+    layer_pixels = acc.buffer.size // acc.buffer.shape[-1]
 
     def body(c, carry):
         acc, flat = carry
@@ -465,7 +472,8 @@ def splat_subsamples(
         )
         return acc, flat
 
-    flat = jnp.concatenate([acc.buffer.reshape(-1, 3), acc.atlas]) if flat_layers else jnp.zeros((1, 3), acc.buffer.dtype)
+    channels = acc.buffer.shape[-1]
+    flat = jnp.concatenate([acc.buffer.reshape(-1, channels), acc.atlas]) if flat_layers else jnp.zeros((1, channels), acc.buffer.dtype)
     # a loop of static length (the bucketed chunk table) whose padding chunks are skipped at run
     # time: reverse-mode differentiable, unlike a loop to the dynamic ``chunks``
     acc, flat = jax.lax.fori_loop(
@@ -512,22 +520,23 @@ def compose_layers(acc: GridAccumulators, jobs: JobTable, width: int, height: in
     buffer = acc.buffer
     if jobs.blur is not None:
         copies = max(dirt_cells, 1)
-        buffer = add_blurred_slots(buffer, acc.atlas.reshape(copies, jobs.blur.size, 3), jobs.blur, jobs.layer, width, height, level_layout)
+        buffer = add_blurred_slots(buffer, acc.atlas.reshape(copies, jobs.blur.size, acc.atlas.shape[-1]), jobs.blur, jobs.layer, width, height, level_layout)
     return compose_levels(buffer, width, height)
 
 
 COMPOSE_LAYERS = eqx.filter_jit(compose_layers)
 
 
-def empty_grid_accumulators(num_layers: int, num_paths: int, width: int, height: int, atlas_size: int = 1) -> GridAccumulators:
+def empty_grid_accumulators(num_layers: int, num_paths: int, width: int, height: int, atlas_size: int = 1, channels: int = 3) -> GridAccumulators:
+    """Zeroed accumulators; ``channels`` is 3 (RGB) or 3 per colour plane of the job colours."""
     h, w = packed_shape(width, height)
     return GridAccumulators(
-        buffer=jnp.zeros((num_layers, h, w, 3), jnp.float32),
-        path_energy=jnp.zeros((num_paths, 3), jnp.float32),
+        buffer=jnp.zeros((num_layers, h, w, channels), jnp.float32),
+        path_energy=jnp.zeros((num_paths, channels), jnp.float32),
         path_hits=jnp.zeros(num_paths, jnp.float32),
         path_weight=jnp.zeros(num_paths, jnp.float32),
-        path_bound=jnp.zeros((num_paths, 3), jnp.float32),
-        atlas=jnp.zeros((max(atlas_size, 1), 3), jnp.float32),
+        path_bound=jnp.zeros((num_paths, channels), jnp.float32),
+        atlas=jnp.zeros((max(atlas_size, 1), channels), jnp.float32),
     )
 
 
