@@ -279,12 +279,21 @@ def _trace_events(
 _trace_events_jit = eqx.filter_jit(_trace_events)
 
 
-def ray_bucket(count: int) -> int:
-    """The number of rays a batch of ``count`` is traced as: the next power of two (at least 128)
-    up to :data:`CHUNK_RAYS`, then the next multiple of it. Batches of nearby sizes share one
-    compiled program (compiling costs seconds; tracing the padding, microseconds to milliseconds)."""
+MIN_RAY_BUCKET = 2048
+"""The smallest batch a trace called with concrete arrays compiles for: every batch of up to this
+many rays shares one program per lens (a compile costs 1-2 s on a 2-core CPU; tracing 2048 rays
+about a millisecond). A trace inside a transformation (a render step's ``jit``, ``grad``) pads to
+:data:`MIN_TRACED_RAY_BUCKET`: its padding is work inside the caller's program."""
+MIN_TRACED_RAY_BUCKET = 128
+
+
+def ray_bucket(count: int, minimum: int = MIN_RAY_BUCKET) -> int:
+    """The number of rays a batch of ``count`` is traced as: the next power of two (at least
+    ``minimum``) up to :data:`CHUNK_RAYS`, then the next multiple of it. Batches of nearby sizes
+    share one compiled program (compiling costs seconds; tracing the padding, milliseconds at
+    most)."""
     if count <= CHUNK_RAYS:
-        return max(128, 1 << max(count - 1, 0).bit_length())
+        return max(minimum, 1 << max(count - 1, 0).bit_length())
     return -(-count // CHUNK_RAYS) * CHUNK_RAYS
 
 
@@ -300,9 +309,11 @@ def trace_events(
 
     Jit-compiled once per lens structure, event-table shape and :func:`ray_bucket` of the batch:
     the rays are padded with copies of the last one up to the bucket, and the padding is cut off
-    the result (inside an outer ``jit`` this is part of that program)."""
+    the result. Inside a transformation (a render step's ``jit``, ``grad``) the smallest bucket is
+    :data:`MIN_TRACED_RAY_BUCKET`: the padding is work inside the caller's program."""
     count = origins.shape[0]
-    size = ray_bucket(count)
+    traced = any(isinstance(x, jax.core.Tracer) for x in (origins, directions, wavelength_nm, slot, events.surface))
+    size = ray_bucket(count, MIN_TRACED_RAY_BUCKET if traced else MIN_RAY_BUCKET)
     if count == 0 or size == count:
         return _trace_events_jit(lens, origins, directions, wavelength_nm, events, num_stop_passes, record_events, fresnel, slot)
 

@@ -418,11 +418,12 @@ def test_per_ray_event_tables_match_one_path_at_a_time(biotar):
 
 
 def test_nearby_batch_sizes_share_one_compilation(biotar):
-    """Batches are traced in size buckets (``ray_bucket``): 1000 and 1001 rays compile once, and
-    the padding never shows in the result."""
+    """Batches are traced in size buckets (``ray_bucket``): 1000 and 1001 rays compile once (as
+    do 1 and 2048), and the padding never shows in the result."""
     from jaxflare.optics._trace import ray_bucket
 
-    assert ray_bucket(1000) == ray_bucket(1001) == 1024 and ray_bucket(1) == 128
+    assert ray_bucket(1000) == ray_bucket(1001) == ray_bucket(1) == ray_bucket(2048) == 2048
+    assert ray_bucket(2049) == 4096 and ray_bucket(16385) == 32768
     origins, directions = _parallel_rays(np.linspace(-3.0, 3.0, 1001))
     first = jaxflare.trace(biotar, origins[:1000], directions[:1000], 550.0, (4, 1))
     before = eqx.debug.get_num_traces(jaxflare.optics.trace_events.__wrapped__)
