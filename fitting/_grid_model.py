@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxflare.rendering import GridFlareModel, gain_basis, knot_hats
+from jaxflare.rendering import GridFlareModel, knot_hats
 
 from ._forward import FULL_IMAGE_BYTES, PathImages, _path_tints, _weighted_blocks
 
@@ -40,16 +40,6 @@ def _stack_bytes(flare: GridFlareModel, count: int, block: int, per_light_colour
     width, height = flare.resolution
     bases = 3 * flare.num_lights if per_light_colour else 1
     return 8 * flare.num_paths * count * bases * (width // block) * (height // block) * 3
-
-
-def _pooled_stack(flare: GridFlareModel, pixel_weight, block: int, per_light_colour: bool, images_of) -> np.ndarray:
-    """``images_of(gain)`` (per-path images, (P, H, W, 3)) for each gain basis, weighted and
-    block-summed as they are made (the full-resolution images are never all held): (P, K, h, w, 3)."""
-    width, height = flare.resolution
-    weight = np.ones((height, width)) if pixel_weight is None else np.asarray(pixel_weight, np.float64)
-    gains = [None] if not per_light_colour else list(gain_basis(flare.num_lights))
-    full = np.stack([np.asarray(images_of(g), np.float32) for g in gains], axis=1)
-    return _weighted_blocks(full, weight, block)
 
 
 def grid_path_images(flare: GridFlareModel, pixel_weight=None, block: int = 1, *, per_light_colour: bool = False) -> PathImages:
