@@ -29,10 +29,9 @@ demo: $(STAMP)
 # pytest exits 5 when it collects no tests: report it instead of failing (make would turn any
 # non-zero status into its own exit code 2, so the distinction has to be made here). A crashed
 # worker ends the run (--max-worker-restart 0): after a restart, xdist's loadfile scheduler has
-# hung until CI's time limit. Whole files go to the workers heaviest first (the order
-# tests/conftest.py gives them; --no-loadscope-reorder keeps it instead of xdist's order by test count).
+# hung until CI's time limit.
 test: $(STAMP)
-	@$(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder --max-worker-restart 0; status=$$?; \
+	@$(BIN)/python -m pytest -q -n 2 --dist loadfile --max-worker-restart 0; status=$$?; \
 	if [ $$status -eq 5 ]; then echo "pytest collected no tests"; exit 0; fi; exit $$status
 
 bench: $(STAMP)

@@ -65,37 +65,3 @@ def _release_compiled_programs():
 @pytest.fixture(scope="session")
 def biotar() -> jaxflare.Lens:
     return jaxflare.load_lens("zeiss_biotar")
-
-
-# Seconds each of the heaviest test files took in a fresh-clone run of `make test` (2-core VM,
-# stop 38, both xdist workers busy), heaviest first. Only an ordering hint: `make test` hands whole
-# files to the two workers in this order (`--dist loadfile --no-loadscope-reorder`), so the long
-# files start first and the short ones fill the gaps at the end (longest-processing-time-first
-# scheduling) instead of a long file starting last while the other worker idles. A file missing
-# here runs after these, in collection order; a stale figure only costs balance, never a result.
-HEAVY_TEST_FILE_SECONDS = {
-    "tests/polynomial/test_path_system.py": 170,
-    "tests/rendering/test_render.py": 155,
-    "tests/docs/test_notebooks.py": 110,
-    "tests/fitting/test_grid_model.py": 85,
-    "tests/fitting/test_fit_plates.py": 75,
-    "tests/docs/test_readme.py": 65,
-    "tests/optics/test_trace.py": 60,
-    "tests/optics/test_fast_tracer.py": 58,
-    "tests/docs/test_notebooks_second_half.py": 57,
-    "tests/fitting/test_thin_film.py": 55,
-    "tests/fitting/test_fit.py": 54,
-    "tests/rendering/test_scene_effects.py": 48,
-    "tests/rendering/test_grid_plan.py": 43,
-    "tests/optics/test_asphere_guards.py": 38,
-}
-
-
-def pytest_collection_modifyitems(config, items):
-    """Heaviest test files first (:data:`HEAVY_TEST_FILE_SECONDS`); a stable sort keeps every
-    file's own order and the other files' collection order."""
-    weight = {}
-    for item in items:
-        path = item.nodeid.split("::", 1)[0]
-        weight.setdefault(path, HEAVY_TEST_FILE_SECONDS.get(path, 0))
-    items.sort(key=lambda item: -weight[item.nodeid.split("::", 1)[0]])
