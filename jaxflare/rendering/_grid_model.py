@@ -157,8 +157,7 @@ class GridFlareModel(eqx.Module):
         elif path_fresnel is None:
             colour = jnp.einsum("k,kjmc->jmc", gains.reshape(-1), self.colour_bases)
         else:
-            gained = dataclasses.replace(setup, lights=scaled_lights(setup.lights, gains))
-            colour = job_colours(gained, jnp.asarray(path_fresnel).astype(dtype), self.jobs.light, self.jobs.path, self.band_nm, self.band_averaging)
+            colour = self._fresnel_colours(jnp.asarray(path_fresnel), gains)
         jobs = dataclasses.replace(self.jobs, colour=colour, layer=self.job_slot if per_path else jnp.zeros_like(self.job_slot))
         if dirt_cells is not None:  # the one-hot maps of the run's cells stand for the dirt map
             effects = dataclasses.replace(setup.effects, dirt=None)
@@ -226,9 +225,8 @@ class GridFlareModel(eqx.Module):
         groups that fit in memory)."""
         knots, fresnels = self.knot_fresnels(step_nm)
         knots, fresnels = knots[knot_slice], fresnels[knot_slice]
-        gains = [None] if not per_light_colour else list(gain_basis(self.num_lights))
         dtype = self.colour_bases.dtype
-        gains = jnp.stack([jnp.ones((self.num_lights, 3), dtype) if g is None else jnp.asarray(g, dtype) for g in gains])
+        gains = jnp.asarray(gain_basis(self.num_lights), dtype) if per_light_colour else jnp.ones((1, self.num_lights, 3), dtype)
         planes = _per_path_planes(self, jnp.stack(fresnels), gains, None if dirt is None else jnp.asarray(dirt, dtype))  # (P, H, W, 3 B K)
         paths, height, width, _ = planes.shape
         return jnp.moveaxis(planes.reshape(paths, height, width, len(fresnels), gains.shape[0], 3), (3, 4), (1, 2)), knots
@@ -237,16 +235,15 @@ class GridFlareModel(eqx.Module):
         """The job colours for each of ``B`` paths' Fresnel factors and ``K`` light gains (as
         ``image(..., light_gain=, path_fresnel=)`` makes them), as colour planes of one splat:
         (J, M, 3 B K), plane ``b K + k``."""
-        setup = self.setup
-        dtype = self.colour_bases.dtype
-
-        def colour(fresnel, gain):
-            gained = dataclasses.replace(setup, lights=scaled_lights(setup.lights, gain))
-            return job_colours(gained, fresnel.astype(dtype), self.jobs.light, self.jobs.path, self.band_nm, self.band_averaging)
-
-        planes = jax.vmap(lambda f: jax.vmap(lambda g: colour(f, g))(light_gains))(path_fresnels)  # (B, K, J, M, 3)
+        planes = jax.vmap(lambda f: jax.vmap(lambda g: self._fresnel_colours(f, g))(light_gains))(path_fresnels)  # (B, K, J, M, 3)
         count = planes.shape[0] * planes.shape[1]
         return jnp.moveaxis(planes.reshape((count,) + planes.shape[2:]), 0, 2).reshape(planes.shape[2], planes.shape[3], -1)
+
+    def _fresnel_colours(self, path_fresnel: Float[Array, "P L"], light_gain: Float[Array, "NL 3"]) -> Float[Array, "J M 3"]:
+        """The job colours for paths' Fresnel factors and light gains (Schlick model)."""
+        dtype = self.colour_bases.dtype
+        gained = dataclasses.replace(self.setup, lights=scaled_lights(self.setup.lights, jnp.asarray(light_gain).astype(dtype)))
+        return job_colours(gained, path_fresnel.astype(dtype), self.jobs.light, self.jobs.path, self.band_nm, self.band_averaging)
 
     def gain_planes(self) -> Float[Array, "J M C"]:
         """The job colours of every light-gain basis (:attr:`colour_bases`) as colour planes of one
