@@ -415,13 +415,21 @@ def fit(
     if fixeds[0] is not None:
         model = "grid" if isinstance(fixeds[0], GridFlareModel) else "path-images" if isinstance(fixeds[0], PathImages) else "samples"
     model = _choose_model(model, params, scenes[0], block, paths, samples, method)
+    full_scenes, full_plates, model_block = scenes, plates, block
+    if model == "grid" and fixeds[0] is None and block > 1 and max(w * h for w, h in resolutions) > FINE_GRID_PIXELS:
+        # a large plate: the grid model is planned and splatted at the block resolution, against
+        # the plate's block means (see block_resolution_plate)
+        scenes = [at_resolution(s, (w // block, h // block)) for s, (w, h) in zip(scenes, resolutions)]
+        plates = [block_resolution_plate(p, block) for p in plates]
+        resolutions = [tuple(s.camera.resolution) for s in scenes]
+        model_block = 1
     if tint_prior_weight is None:
         tint_prior_weight = TINT_PRIOR_WEIGHTS[model]
     if dirt_prior_weight is None:
         dirt_prior_weight = DIRT_PRIOR_WEIGHTS[model]
     built = [
         _plate_model(
-            s, p, f, model, params, block, samples=samples, seed=seed, method=method, paths=paths, grid_quality=grid_quality,
+            s, p, f, model, params, model_block, samples=samples, seed=seed, method=method, paths=paths, grid_quality=grid_quality,
             dirt_shape=(dirt_resolution, dirt_resolution),
         )
         for s, p, f in zip(scenes, plates, fixeds)
@@ -448,7 +456,7 @@ def fit(
 
         def pooled(k, image, weight):  # weighted block sums of plate k
             width, height = resolutions[k]
-            shape = (height // block, block, width // block, block, image.shape[-1])
+            shape = (height // model_block, model_block, width // model_block, model_block, image.shape[-1])
             return (image * weight).reshape(shape).sum(axis=(1, 3))
 
         targets = [pooled(k, jnp.asarray(np.where(p.weight[..., None] > 0, p.rgb, 0.0), jnp.float64), weights[k]) for k, p in enumerate(plates)]
@@ -537,8 +545,12 @@ def fit(
             _final_image(b, f, scenes[k], model_tints, dirt,
                          gain[gain_offsets[k] : gain_offsets[k + 1]] if "lights" in params else None, film=None if film is None else (layers, film))
             for k, (b, f) in enumerate(zip(built, forwards))
+        ] if model_block == block else [
+            _full_resolution_image(full_scenes[k], b.grid, model_tints, dirt,
+                                   gain[gain_offsets[k] : gain_offsets[k + 1]] if "lights" in params else None, film=None if film is None else (layers, film))
+            for k, b in enumerate(built)
         ]
-    residual = [np.where(p.weight[..., None] > 0, image - p.rgb, 0.0) for p, image in zip(plates, images)]
+    residual = [np.where(p.weight[..., None] > 0, image - p.rgb, 0.0) for p, image in zip(full_plates, images)]
     gains = [gain[gain_offsets[k] : gain_offsets[k + 1]] for k in range(len(plates))]
     gain_stds = None if gain_std is None else [gain_std[gain_offsets[k] : gain_offsets[k + 1]] for k in range(len(plates))]
     one = len(plates) == 1
@@ -705,6 +717,42 @@ def _final_image(built: _BuiltModel, forward, scene, tints, dirt, gain, film=Non
         fixed = built.forward
         return flare_render(scene, tints, gain, samples=fixed.samples, seed=fixed.seed, method=fixed.method, quality=fixed.quality, paths=fixed.paths)
     return np.asarray(render_image(forward, jnp.asarray(tints), None if dirt is None else jnp.asarray(dirt), jnp.ones((_num_lights(forward), 3)) if gain is None else gain))
+
+
+FULL_RESOLUTION_GRID_QUALITY = "preview"
+"""The grid estimator's quality for the full-resolution render of a fit made at the block
+resolution (plates of more than :data:`FINE_GRID_PIXELS`)."""
+
+
+def at_resolution(scene: Scene, resolution: tuple[int, int]) -> Scene:
+    """``scene`` rendered at ``resolution`` (the same sensor and framing, larger or smaller pixels)."""
+    return dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, resolution=tuple(int(r) for r in resolution)))
+
+
+def block_resolution_plate(plate: Plate, block: int) -> Plate:
+    """``plate`` at the block resolution: each ``block`` x ``block`` block's weighted mean, with the
+    block's summed weight (so its residual is the block's weighted residual sum for a model that is
+    even over the block). Blocks with a masked pixel (weight 0) are left out (weight 0), unless
+    that would leave nothing: a model rendered at the block resolution cannot see which of a block's
+    pixels the mask drops."""
+    height, width = plate.rgb.shape[:2]
+    if height % block or width % block:
+        raise ValueError(f"block must divide the plate's resolution {width} x {height}, got {block}")
+    shape = (height // block, block, width // block, block)
+    weight = plate.weight.reshape(shape)
+    summed = weight.sum(axis=(1, 3))
+    means = (plate.rgb * plate.weight[..., None]).reshape(shape + (3,)).sum(axis=(1, 3)) / np.maximum(summed, 1e-300)[..., None]
+    whole = np.all(weight > 0, axis=(1, 3))
+    keep = whole if np.any(whole) else summed > 0
+    return Plate(rgb=np.where(keep[..., None], means, 0.0), weight=np.where(keep, summed, 0.0), source=plate.source, layer=plate.layer)
+
+
+def _full_resolution_image(scene: Scene, grid: GridFlareModel, tints, dirt, gain, film=None) -> np.ndarray:
+    """The flare with the fitted parameters at ``scene``'s (the plate's) resolution, from a grid
+    model of the paths ``grid`` (the fit's, at the block resolution) drew, at
+    :data:`FULL_RESOLUTION_GRID_QUALITY`."""
+    full = grid_flare_model(scene, FULL_RESOLUTION_GRID_QUALITY, paths=list(grid.paths))
+    return _final_image(_BuiltModel(full, full, full.subsamples), full, scene, tints, dirt, gain, film=film)
 
 
 def _solve(residuals, free, solver: str, rtol: float, atol: float, max_steps: int, progress, dense: bool = False, physical=None, args=None):
