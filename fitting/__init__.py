@@ -20,6 +20,7 @@ from ._fit import (
     FitResult,
     FlareParameters,
     apply_fit,
+    block_resolution_plate,
     fit,
     save_fit,
 )
@@ -43,6 +44,7 @@ __all__ = [
     "Plate",
     "PlateQuantisationWarning",
     "apply_fit",
+    "block_resolution_plate",
     "fit",
     "fixed_samples",
     "flare_render",

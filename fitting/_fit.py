@@ -240,7 +240,7 @@ class FitResult:
     model_resolution: tuple[int, int] | None = None
     """(width, height) at which the forward model was rendered (plate 0's): the plate's own
     resolution, or its block resolution for a grid model of a plate larger than
-    :data:`FINE_GRID_PIXELS` (compared with the plate's block means; :func:`block_resolution_plate`)."""
+    :data:`FINE_GRID_PIXELS` (compared with the plate spread onto its pixels: :func:`block_resolution_plate`)."""
 
     def as_dict(self) -> dict:
         def listed(x):
@@ -376,7 +376,7 @@ def fit(
     :func:`default_block`): a plate's noise and the model's sub-pixel error average out in them,
     while a ghost spans many blocks. A grid model of a plate of more than :data:`FINE_GRID_PIXELS`
     pixels is planned and rendered at the block resolution (a 2K plate at block 4: 512 x 288) and
-    compared with the plate's weighted block means (:func:`block_resolution_plate`), at
+    compared with the plate spread onto the block resolution's pixels (:func:`block_resolution_plate`), at
     ``grid_quality``; the result's ``render`` and ``residual`` are then a full-resolution grid render
     with the fitted parameters (:data:`FULL_RESOLUTION_GRID_QUALITY`), and ``model_resolution``
     says which resolution the fit compared. ``fixed``: a grid model, samples or path images made earlier
@@ -432,7 +432,7 @@ def fit(
     full_scenes, full_plates, model_block = scenes, plates, block
     if model == "grid" and fixeds[0] is None and block > 1 and max(w * h for w, h in resolutions) > FINE_GRID_PIXELS:
         # a large plate: the grid model is planned and splatted at the block resolution, against
-        # the plate's block means (see block_resolution_plate)
+        # the plate spread onto that resolution's pixels (block_resolution_plate)
         scenes = [at_resolution(s, (w // block, h // block)) for s, (w, h) in zip(scenes, resolutions)]
         plates = [block_resolution_plate(p, block) for p in plates]
         resolutions = [tuple(s.camera.resolution) for s in scenes]
@@ -848,9 +848,12 @@ def _standard_errors(data_residuals, fitted: dict, *, prior_weights: dict, resid
     the prior's spread), ``s^2`` the residuals' mean square (the plate's noise and the model's own
     error together) and ``kappa`` >= 1 the residuals' spatial correlation
     (:func:`residual_correlation`: 1 for independent pixels; a model error spread over a ghost
-    counts fewer times than it has pixels). Returns the errors with the priors and
-    without them (whether the plate alone determines a parameter, as ``tint_observable``), as
-    dicts like ``fitted``; directions nothing constrains get infinite errors."""
+    counts fewer times than it has pixels). The errors with the priors are at least the
+    cluster-robust (sandwich) errors over :data:`ROBUST_TILE` tiles (:func:`_tile_sandwich_diagonal`),
+    which weigh each parameter's own residuals instead of one scatter for all. Returns the errors
+    with the priors and without them (scatter-based: whether the plate alone determines a
+    parameter, as ``tint_observable``), as dicts like ``fitted``; directions nothing constrains get
+    infinite errors."""
     names = list(fitted)
     if not names:
         return {}, {}
@@ -878,11 +881,40 @@ def _standard_errors(data_residuals, fitted: dict, *, prior_weights: dict, resid
     scatter *= residual_correlation(np.asarray(r), residual_shape)
     std = np.sqrt(_inverse_diagonal(normal) * scatter)
     data_std = np.sqrt(scatter * _inverse_diagonal(data_normal))
+    if residual_shape is not None:  # and no smaller than the cluster-robust (sandwich) error
+        std = np.maximum(std, np.sqrt(_tile_sandwich_diagonal(np.asarray(columns), np.asarray(r), residual_shape, normal, ROBUST_TILE)))
 
     def split(values):
         return {n: part.reshape(shapes[n]) for n, part in zip(names, np.split(values, np.cumsum(sizes)[:-1]))}
 
     return split(std), split(data_std)
+
+
+ROBUST_TILE = 2
+"""Side (residual pixels: blocks of the plate) of the tiles over which :func:`_standard_errors`'
+cluster-robust error lets residuals correlate. Measured on the plate-fit benchmark's 128 x 72
+coatings fits (4 x 4 blocks, quick 2^21-sample plates, 20 observable tint channels): truth within
+3 standard errors for 80 % (clean) and 85 % (1 % noise) of them with the scatter-based errors
+alone, 100 % and 100 % with 2 x 2 tiles, 95 % with 4 x 4, 85-90 % with 8 x 8 (too few tiles for
+the parameters: the sandwich's middle matrix loses rank and underestimates)."""
+
+
+def _tile_sandwich_diagonal(columns: np.ndarray, r: np.ndarray, residual_shape, normal: np.ndarray, tile: int) -> np.ndarray:
+    """Diagonal of the cluster-robust (sandwich) covariance ``N^-1 (sum_g s_g s_g^T) N^-1`` with
+    ``s_g = J_g^T r_g`` summed over square tiles of ``tile`` x ``tile`` pixels of each plate's
+    residual image: a model error correlated within a tile counts once per tile."""
+    ids, offset = [], 0
+    for shape in residual_shape:
+        height, width = shape[:2]
+        channels = int(np.prod(shape[2:]))
+        across = -(-width // tile)
+        rows, cols = np.indices((height, width))
+        ids.append(np.repeat(((rows // tile) * across + cols // tile).ravel() + offset, channels))
+        offset += -(-height // tile) * across
+    ids = np.concatenate(ids)
+    scores = np.stack([np.bincount(ids, weights=column * r, minlength=offset) for column in columns])  # (p, tiles)
+    inverse = np.linalg.pinv(normal, hermitian=True)
+    return np.maximum(np.einsum("ij,jk,ik->i", inverse, scores @ scores.T, inverse), 0.0)
 
 
 def _inverse_diagonal(normal: np.ndarray) -> np.ndarray:

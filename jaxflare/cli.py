@@ -377,7 +377,9 @@ def _fit(args) -> int:
     path = fitting.save_fit(result, args.output)
     print(f"wrote {os.path.abspath(path)}")
     verdict = result.status if result.converged else f"{result.status} (returned the best parameters)"
-    print(f"{result.solver} on {result.model} ({result.samples} {'grid sub-samples' if result.model == 'grid' else 'samples'}): {verdict}, {result.steps} steps in {result.seconds:.1f} s; "
+    width, height = result.model_resolution or (0, 0)
+    print(f"{result.solver} on {result.model} ({result.samples} {'grid sub-samples' if result.model == 'grid' else 'samples'}, {width} x {height} pixels, "
+          f"block {result.block}): {verdict}, {result.steps} steps in {result.seconds:.1f} s; "
           f"loss {result.loss_history[0]:.6g} -> {min(result.loss_history):.6g}")
     if result.tint_std is not None:
         observable = result.as_dict()["observable_interfaces"]

@@ -1,11 +1,12 @@
-"""Large plates are fitted at their block resolution (fitting._fit.block_resolution_plate): the grid
-model is planned and rendered at (width / block, height / block) and compared with the plate's
-weighted block means, so a 2K plate costs what a 512 x 288 one does; the result's render is still
-at the plate's resolution.
+"""Large plates are fitted at their block resolution (fitting.block_resolution_plate): the grid
+model is planned and rendered at (width / block, height / block) and compared with the plate
+spread onto those pixels as the renderer's bilinear splat spreads light, so a 2K plate costs what
+a 512 x 288 one does; the result's render is still at the plate's resolution.
 
-The block means must be exact (weights, masks), the model at the block resolution must agree with
-the block means of a full-resolution render (an independent discretisation of the same flare), and
-a fit through it must recover the tints of a plate it did not make."""
+The reduced plate must be the renderer's own splat of the plate's pixels (weights, masks), a render
+at the block resolution must agree with the reduced full-resolution render (an independent
+discretisation of the same flare), and a fit through it must recover the tints of a plate it did
+not make."""
 
 import dataclasses
 
@@ -51,7 +52,7 @@ def test_block_plate_is_the_plate_as_the_renderers_splat_sees_it_and_drops_what_
     rgb = rng.uniform(0.0, 2.0, (12, 16, 3))
     weight = rng.uniform(0.5, 2.0, (12, 16))
     plate = fitting.Plate(rgb=rgb, weight=weight)
-    reduced = _fit.block_resolution_plate(plate, 4)
+    reduced = fitting.block_resolution_plate(plate, 4)
     assert reduced.rgb.shape == (3, 4, 3) and reduced.weight.shape == (3, 4)
     # the summed weights and the weighted values are the renderer's splat of the plate's pixels
     np.testing.assert_allclose(reduced.weight, splatted(weight[..., None], 4)[..., 0], rtol=1e-12)
@@ -60,16 +61,16 @@ def test_block_plate_is_the_plate_as_the_renderers_splat_sees_it_and_drops_what_
     # a masked pixel drops every small pixel its splat reaches, and only those
     masked = weight.copy()
     masked[5, 9] = 0.0
-    cut = _fit.block_resolution_plate(fitting.Plate(rgb=rgb, weight=masked), 4)
+    cut = fitting.block_resolution_plate(fitting.Plate(rgb=rgb, weight=masked), 4)
     reaches = splatted((masked == 0)[..., None].astype(float), 4)[..., 0] > 0
     assert reaches.sum() == 4 and np.all(cut.weight[reaches] == 0.0) and np.all(cut.weight[~reaches] > 0.0)
     np.testing.assert_allclose(cut.rgb[~reaches], reduced.rgb[~reaches], rtol=1e-12)
     # a mask that reaches every small pixel keeps the partly weighted ones rather than nothing
     checker = (np.indices((12, 16)).sum(axis=0) % 2).astype(float)
-    kept = _fit.block_resolution_plate(fitting.Plate(rgb=rgb, weight=checker), 4)
+    kept = fitting.block_resolution_plate(fitting.Plate(rgb=rgb, weight=checker), 4)
     assert np.all(kept.weight > 0)
     with pytest.raises(ValueError, match="block must divide"):
-        _fit.block_resolution_plate(plate, 5)
+        fitting.block_resolution_plate(plate, 5)
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +90,7 @@ def test_render_at_the_block_resolution_matches_the_reduced_plate_not_its_block_
     scene, plate = large_plate
     small = jf.render(flare_only(with_tints(at(scene, (64, 48)), TRUE_TINTS)), estimator="grid", quality="production").image[..., :3]
     small = np.asarray(small, np.float64).sum(axis=-1)
-    reduced = _fit.block_resolution_plate(plate, BLOCK).rgb.sum(axis=-1)
+    reduced = fitting.block_resolution_plate(plate, BLOCK).rgb.sum(axis=-1)
     means = plate.rgb.sum(axis=-1).reshape(48, BLOCK, 64, BLOCK).mean(axis=(1, 3))
     error = lambda reference: np.linalg.norm(small - reference) / np.linalg.norm(reference)  # noqa: E731
     assert error(reduced) < 0.06
