@@ -379,7 +379,9 @@ def fit(
     compared with the plate spread onto the block resolution's pixels (:func:`block_resolution_plate`), at
     ``grid_quality``; the result's ``render`` and ``residual`` are then a full-resolution grid render
     with the fitted parameters (:data:`FULL_RESOLUTION_GRID_QUALITY`), and ``model_resolution``
-    says which resolution the fit compared. ``fixed``: a grid model, samples or path images made earlier
+    says which resolution the fit compared (a dirt fit reduces further, by powers of 2, until its
+    per-cell image stack fits in :data:`~fitting._forward.PATH_IMAGE_BYTES`: a 2K plate with a
+    16 x 16 map at 64 x 36). ``fixed``: a grid model, samples or path images made earlier
     (tests, benchmarks; a sequence, one per plate, for several plates). ``tint_prior_weight``: None takes the model's default
     (:data:`TINT_PRIOR_WEIGHTS`), and so does ``dirt_prior_weight`` (:data:`DIRT_PRIOR_WEIGHTS`).
     ``method``: how samples are traced (``"exact"``, ``"polynomial"``, ``"auto"``), as in
@@ -433,8 +435,11 @@ def fit(
     if model == "grid" and fixeds[0] is None and block > 1 and max(w * h for w, h in resolutions) > FINE_GRID_PIXELS:
         # a large plate: the grid model is planned and splatted at the block resolution, against
         # the plate spread onto that resolution's pixels (block_resolution_plate)
-        scenes = [at_resolution(s, (w // block, h // block)) for s, (w, h) in zip(scenes, resolutions)]
-        plates = [block_resolution_plate(p, block) for p in plates]
+        factor = block
+        if "dirt" in params and "thin-film" not in params:  # down to where its per-cell stack fits in memory
+            factor = _dirt_stack_factor(scenes, resolutions, block, paths, dirt_resolution, per_light_colour="lights" in params)
+        scenes = [at_resolution(s, (w // factor, h // factor)) for s, (w, h) in zip(scenes, resolutions)]
+        plates = [block_resolution_plate(p, factor) for p in plates]
         resolutions = [tuple(s.camera.resolution) for s in scenes]
         model_block = 1
     if tint_prior_weight is None:
@@ -746,6 +751,26 @@ resolution (plates of more than :data:`FINE_GRID_PIXELS`)."""
 def at_resolution(scene: Scene, resolution: tuple[int, int]) -> Scene:
     """``scene`` rendered at ``resolution`` (the same sensor and framing, larger or smaller pixels)."""
     return dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, resolution=tuple(int(r) for r in resolution)))
+
+
+def _dirt_stack_factor(scenes, resolutions, block: int, paths, dirt_resolution: int, *, per_light_colour: bool) -> int:
+    """How much a dirt fit of large plates reduces them: ``block``, doubled while the per-path,
+    per-dirt-cell image stack at the reduced resolution would exceed
+    :data:`~._forward.PATH_IMAGE_BYTES` (its paths counted before culling) and the resolutions
+    stay divisible. Without the stack the fit re-splats every sub-sample for every parameter the
+    solver tries (matrix-free: hours at 512 x 288)."""
+    lens = camera_lens(scenes[0].camera)
+    num_paths = len(paths) if paths is not None else len(ghost_paths(lens))
+    lights = max(len(s.lights) for s in scenes)
+    per_pixel = 8 * num_paths * dirt_resolution**2 * (3 * lights if per_light_colour else 1) * 3
+
+    def stack_bytes(factor):
+        return sum(per_pixel * (w // factor) * (h // factor) for w, h in resolutions)
+
+    factor = block
+    while stack_bytes(factor) > PATH_IMAGE_BYTES and all(w % (2 * factor) == 0 and h % (2 * factor) == 0 for w, h in resolutions):
+        factor *= 2
+    return factor
 
 
 def splat_weights(size: int, block: int) -> np.ndarray:

@@ -16,6 +16,7 @@ import pytest
 import fitting
 import jaxflare as jf
 from fitting import _fit
+from fitting._forward import PATH_IMAGE_BYTES
 from jaxflare.rendering._splat import splat
 from tests.helpers import BIOTAR_TWO_LIGHTS, flare_only
 
@@ -117,3 +118,18 @@ def test_a_plate_larger_than_the_fine_grid_is_fitted_at_its_block_resolution(lar
     np.testing.assert_allclose(result.coating_tints[observable], TRUE_TINTS[observable], atol=0.15)
     assert np.linalg.norm(result.residual) < 0.1 * np.linalg.norm(plate.rgb)
     assert result.as_dict()["model_resolution"] == [64, 48]
+
+
+def test_a_dirt_fit_of_a_large_plate_reduces_it_until_its_per_cell_stack_fits():
+    """The per-path, per-dirt-cell image stack of a 16 x 16 map over the Biotar's 45 ghost paths
+    takes 8 * 45 * 256 * 3 bytes per pixel: at 2K it fits PATH_IMAGE_BYTES only at 64 x 36 (32x
+    less resolution), an 8 x 8 map at 128 x 72; the reduction stops where the resolution would no
+    longer divide."""
+    scene = at(BIOTAR_TWO_LIGHTS, (2048, 1152))
+    factor = lambda resolution, cells, per_light=False: _fit._dirt_stack_factor(  # noqa: E731
+        [at(scene, resolution)], [resolution], 4, None, cells, per_light_colour=per_light)
+    assert factor((2048, 1152), 16) == 32 and factor((2048, 1152), 8) == 16
+    per_pixel = 8 * 45 * 256 * 3
+    assert per_pixel * 64 * 36 <= PATH_IMAGE_BYTES < per_pixel * 128 * 72
+    assert factor((2048, 1152), 16, per_light=True) == 64  # six gain planes: 6x the stack
+    assert factor((2052, 1156), 16) == 4  # 2052 / 8 is no integer: the block is all it can do
