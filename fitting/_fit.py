@@ -66,6 +66,7 @@ from ._grid_model import (
     grid_film_images,
     grid_interfaces,
     grid_path_images_and_full,
+    stack_bytes,
 )
 from ._levenberg_marquardt import LevenbergMarquardt
 from ._physical_termination import GaussNewton
@@ -311,9 +312,13 @@ def _choose_model(model: str, params, scene, block: int, paths, samples=None, me
         return "grid"
     if "dirt" in params:
         return "samples"
-    num_paths = len(ghost_paths(camera_lens(scene.camera))) if paths is None else len(paths)
-    size = path_images_bytes(scene, num_paths, per_light_colour="lights" in params, block=block)
+    size = path_images_bytes(scene, _num_flare_paths(scene, paths), per_light_colour="lights" in params, block=block)
     return "path-images" if size <= PATH_IMAGE_BYTES else "samples"
+
+
+def _num_flare_paths(scene: Scene, paths) -> int:
+    """Flare paths a model of ``scene`` draws: ``paths``, or every ghost path of its lens (before culling)."""
+    return len(ghost_paths(camera_lens(scene.camera))) if paths is None else len(paths)
 
 
 def fit(
@@ -759,16 +764,13 @@ def _dirt_stack_factor(scenes, resolutions, block: int, paths, dirt_resolution: 
     :data:`~._forward.PATH_IMAGE_BYTES` (its paths counted before culling) and the resolutions
     stay divisible. Without the stack the fit re-splats every sub-sample for every parameter the
     solver tries (matrix-free: hours at 512 x 288)."""
-    lens = camera_lens(scenes[0].camera)
-    num_paths = len(paths) if paths is not None else len(ghost_paths(lens))
-    lights = max(len(s.lights) for s in scenes)
-    per_pixel = 8 * num_paths * dirt_resolution**2 * (3 * lights if per_light_colour else 1) * 3
+    num_paths, lights = _num_flare_paths(scenes[0], paths), max(len(s.lights) for s in scenes)
 
-    def stack_bytes(factor):
-        return sum(per_pixel * (w // factor) * (h // factor) for w, h in resolutions)
+    def total_bytes(factor):
+        return sum(stack_bytes(num_paths, lights, dirt_resolution**2, (w, h), factor, per_light_colour) for w, h in resolutions)
 
     factor = block
-    while stack_bytes(factor) > PATH_IMAGE_BYTES and all(w % (2 * factor) == 0 and h % (2 * factor) == 0 for w, h in resolutions):
+    while total_bytes(factor) > PATH_IMAGE_BYTES and all(w % (2 * factor) == 0 and h % (2 * factor) == 0 for w, h in resolutions):
         factor *= 2
     return factor
 
@@ -811,8 +813,8 @@ def block_resolution_plate(plate: Plate, block: int) -> Plate:
     summed = spread(plate.weight)
     values = spread(plate.rgb * plate.weight[..., None]) / np.maximum(summed, 1e-300)[..., None]
     masked = (rows > 0).astype(np.float64) @ (plate.weight == 0).astype(np.float64) @ (columns > 0).astype(np.float64).T > 0
-    keep = ~masked if np.any(~masked & (summed > 0)) else summed > 0
-    keep &= summed > 0
+    weighted = summed > 0
+    keep = weighted & ~masked if np.any(weighted & ~masked) else weighted
     return Plate(rgb=np.where(keep[..., None], values, 0.0), weight=np.where(keep, summed, 0.0), source=plate.source, layer=plate.layer)
 
 

@@ -35,11 +35,17 @@ def _check_block(flare: GridFlareModel, block: int) -> None:
         raise ValueError(f"block must divide the resolution {width} x {height}, got {block}")
 
 
+def stack_bytes(num_paths: int, num_lights: int, count: int, resolution: tuple[int, int], block: int, per_light_colour: bool) -> int:
+    """Size (float64) of a block-summed stack of ``count`` images per path and gain basis, at
+    ``resolution`` (width, height)."""
+    width, height = resolution
+    bases = 3 * num_lights if per_light_colour else 1
+    return 8 * num_paths * count * bases * (width // block) * (height // block) * 3
+
+
 def _stack_bytes(flare: GridFlareModel, count: int, block: int, per_light_colour: bool) -> int:
-    """Size (float64) of a block-summed stack of ``count`` images per path and gain basis."""
-    width, height = flare.resolution
-    bases = 3 * flare.num_lights if per_light_colour else 1
-    return 8 * flare.num_paths * count * bases * (width // block) * (height // block) * 3
+    """:func:`stack_bytes` of ``flare``'s paths, lights and resolution."""
+    return stack_bytes(flare.num_paths, flare.num_lights, count, flare.resolution, block, per_light_colour)
 
 
 def grid_path_images(flare: GridFlareModel, pixel_weight=None, block: int = 1, *, per_light_colour: bool = False) -> PathImages:

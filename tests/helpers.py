@@ -25,6 +25,12 @@ BIOTAR_TWO_LIGHTS = jaxflare.Scene(
 """A Zeiss Biotar at f/4, 64 x 48 pixels, two distant lights (one warm): small enough to model fast."""
 
 
+def with_tints(scene, tints):
+    """``scene`` with interface ``k``'s coating tint ``tints[k]`` (RGB) for every row of ``tints``."""
+    camera = dataclasses.replace(scene.camera, coating_tints=tuple((k, tuple(map(float, rgb))) for k, rgb in enumerate(tints)))
+    return dataclasses.replace(scene, camera=camera)
+
+
 def flare_only(scene):
     """The scene rendered as a fit models it: no core, no culling."""
     return dataclasses.replace(scene, render=dataclasses.replace(scene.render, core=False, cull_threshold=0.0))

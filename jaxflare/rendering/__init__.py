@@ -22,7 +22,7 @@ from ._adaptive import SamplingTable, draw, masked_table, uniform_table
 from ._grid_model import KNOT_STEP_NM, GridFlareModel, gain_basis, grid_flare_model, knot_hats, scaled_lights
 from ._grid_plan import GridPlan, PreparedGrid, grid_layers, plan_grid, prepare_grid, run_grid
 from ._gamut import clip_to_gamut
-from ._grid_render import grid_result, render_grid
+from ._grid_render import grid_result, render_grid, render_plan
 from ._lights import LightArrays, light_arrays, light_rgb
 from ._path_sets import AbstractPathSet, AdaptivePathSet, UniformPathSet, group_records, trace_groups
 from ._plan import (
@@ -147,6 +147,7 @@ __all__ = [
     "record_values",
     "render",
     "render_grid",
+    "render_plan",
     "render_result",
     "render_settings",
     "render_step",

@@ -15,26 +15,26 @@ import warnings
 
 import numpy as np
 
-from ._grid_plan import GridPlan, grid_layers, plan_grid, prepare_grid
+from ._grid_plan import GridPlan, plan_grid, run_grid
 from ._quality import radiance_scale
 from ._result import RenderResult, RenderStatistics, flare_image, frame_statistics, gamut_mapped, hit_statistics, named_layers, path_statistics
 
-__all__ = ["grid_result", "render_grid"]
+__all__ = ["grid_result", "render_grid", "render_plan"]
 
 
 def render_grid(scene, quality: str | None = None, seed: int = 0, *, paths=None, grid_error: float | None = None, grid_options: dict | None = None) -> RenderResult:
     """Render ``scene`` with the grid estimator (arguments as for :func:`jaxflare.render`;
     ``grid_error`` and ``grid_options`` as for :func:`plan_grid`)."""
-    plan = plan_grid(scene, quality, seed, paths=paths, grid_error=grid_error, grid_options=grid_options)
+    return render_plan(plan_grid(scene, quality, seed, paths=paths, grid_error=grid_error, grid_options=grid_options))
+
+
+def render_plan(plan: GridPlan) -> RenderResult:
+    """The grid render of a finished :func:`plan_grid` plan (what :func:`render_grid` does after planning)."""
     started = time.perf_counter()
-    prepared = prepare_grid(plan)
-    layers, acc = grid_layers(plan.setup, plan, prepared)
+    layers, acc, counts = run_grid(plan)
     layers = np.asarray(layers)
     now = time.perf_counter()
-    inner = prepared.prepared
-    path_samples = inner.slot_samples if inner is not None else np.zeros(len(plan.paths))
-    subsamples = 0 if inner is None else int(inner.total)
-    return grid_result(plan, layers, acc, path_samples, subsamples, prepared.rays, now - started, time_now=now)
+    return grid_result(plan, layers, acc, counts["path_samples"], counts["subsamples"], counts["rays"], now - started, time_now=now)
 
 
 def grid_result(plan: GridPlan, layers: np.ndarray, acc, path_samples: np.ndarray, subsamples: int, rays: int, render_seconds: float, *, time_now: float) -> RenderResult:

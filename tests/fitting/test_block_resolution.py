@@ -8,7 +8,6 @@ at the block resolution must agree with the reduced full-resolution render (an i
 discretisation of the same flare), and a fit through it must recover the tints of a plate it did
 not make."""
 
-import dataclasses
 
 import numpy as np
 import pytest
@@ -16,9 +15,10 @@ import pytest
 import fitting
 import jaxflare as jf
 from fitting import _fit
+from fitting._fit import at_resolution
 from fitting._forward import PATH_IMAGE_BYTES
 from jaxflare.rendering._splat import splat
-from tests.helpers import BIOTAR_TWO_LIGHTS, flare_only
+from tests.helpers import BIOTAR_TWO_LIGHTS, flare_only, with_tints
 
 jax = pytest.importorskip("jax")
 jnp = jax.numpy
@@ -27,15 +27,6 @@ TRUE_TINTS = np.ones((10, 3))
 TRUE_TINTS[7] = (1.0, 0.6, 0.3)
 TRUE_TINTS[4] = (0.5, 0.9, 1.2)
 BLOCK = 4
-
-
-def at(scene, resolution):
-    return dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, resolution=resolution))
-
-
-def with_tints(scene, tints):
-    camera = dataclasses.replace(scene.camera, coating_tints=tuple((k, tuple(map(float, rgb))) for k, rgb in enumerate(tints)))
-    return dataclasses.replace(scene, camera=camera)
 
 
 def splatted(image, block):
@@ -78,7 +69,7 @@ def test_block_plate_is_the_plate_as_the_renderers_splat_sees_it_and_drops_what_
 def large_plate():
     """The two-light Biotar scene at 4x its resolution (256 x 192), with two tinted interfaces,
     rendered by the grid estimator at production quality (its own grid, not the fit's model)."""
-    scene = at(BIOTAR_TWO_LIGHTS, (256, 192))
+    scene = at_resolution(BIOTAR_TWO_LIGHTS, (256, 192))
     rgb = jf.render(flare_only(with_tints(scene, TRUE_TINTS)), estimator="grid", quality="production").image[..., :3]
     return scene, fitting.Plate(rgb=np.asarray(rgb, np.float64), weight=np.ones(rgb.shape[:2]), source="large", layer="")
 
@@ -89,7 +80,7 @@ def test_render_at_the_block_resolution_matches_the_reduced_plate_not_its_block_
     plain 4 x 4 block means differ by 28 % (the render's bilinear splats blur the ghosts' edges over
     two of its pixels); the energy is the same."""
     scene, plate = large_plate
-    small = jf.render(flare_only(with_tints(at(scene, (64, 48)), TRUE_TINTS)), estimator="grid", quality="production").image[..., :3]
+    small = jf.render(flare_only(with_tints(at_resolution(scene, (64, 48)), TRUE_TINTS)), estimator="grid", quality="production").image[..., :3]
     small = np.asarray(small, np.float64).sum(axis=-1)
     reduced = fitting.block_resolution_plate(plate, BLOCK).rgb.sum(axis=-1)
     means = plate.rgb.sum(axis=-1).reshape(48, BLOCK, 64, BLOCK).mean(axis=(1, 3))
@@ -125,9 +116,9 @@ def test_a_dirt_fit_of_a_large_plate_reduces_it_until_its_per_cell_stack_fits():
     takes 8 * 45 * 256 * 3 bytes per pixel: at 2K it fits PATH_IMAGE_BYTES only at 64 x 36 (32x
     less resolution), an 8 x 8 map at 128 x 72; the reduction stops where the resolution would no
     longer divide."""
-    scene = at(BIOTAR_TWO_LIGHTS, (2048, 1152))
+    scene = at_resolution(BIOTAR_TWO_LIGHTS, (2048, 1152))
     factor = lambda resolution, cells, per_light=False: _fit._dirt_stack_factor(  # noqa: E731
-        [at(scene, resolution)], [resolution], 4, None, cells, per_light_colour=per_light)
+        [at_resolution(scene, resolution)], [resolution], 4, None, cells, per_light_colour=per_light)
     assert factor((2048, 1152), 16) == 32 and factor((2048, 1152), 8) == 16
     per_pixel = 8 * 45 * 256 * 3
     assert per_pixel * 64 * 36 <= PATH_IMAGE_BYTES < per_pixel * 128 * 72

@@ -15,6 +15,7 @@ import pytest
 import fitting
 import jaxflare as jf
 from fitting._forward import path_images
+from tests.helpers import with_tints
 
 jax = pytest.importorskip("jax")
 
@@ -28,11 +29,6 @@ TRUE_TINTS[4] = (0.5, 0.9, 1.2)
 BLOCK = 8
 MODEL_SAMPLES = 2**21
 PLATE_SAMPLES = 2**21
-
-
-def with_tints(scene, tints):
-    camera = dataclasses.replace(scene.camera, coating_tints=tuple((k, tuple(map(float, rgb))) for k, rgb in enumerate(tints)))
-    return dataclasses.replace(scene, camera=camera)
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ import jaxflare as jf
 from fitting._forward import _path_tints
 from fitting._grid_model import grid_interfaces, grid_path_images
 from jaxflare.rendering import grid_flare_model, render_grid
-from tests.helpers import BIOTAR_TWO_LIGHTS, flare_only
+from tests.helpers import BIOTAR_TWO_LIGHTS, flare_only, with_tints
 
 jax = pytest.importorskip("jax")
 jnp = jax.numpy
@@ -27,11 +27,6 @@ TRUE_TINTS = np.ones((10, 3))
 TRUE_TINTS[7] = (1.0, 0.6, 0.3)
 TRUE_TINTS[4] = (0.5, 0.9, 1.2)
 IMAGE = eqx.filter_jit(lambda model, tint, dirt, gain: model.image(tint, dirt, gain))
-
-
-def with_tints(scene, tints):
-    camera = dataclasses.replace(scene.camera, coating_tints=tuple((k, tuple(map(float, rgb))) for k, rgb in enumerate(tints)))
-    return dataclasses.replace(scene, camera=camera)
 
 
 @pytest.fixture(scope="module")

@@ -25,10 +25,7 @@ def test_a_cell_smaller_than_a_level_pixel_costs_its_lost_peak():
 
 
 def _flare_image(plan) -> np.ndarray:
-    """The flare image of a plan (as render_grid, without planning again)."""
-    layers, acc, counts = rendering.run_grid(plan)
-    result = rendering.grid_result(plan, np.asarray(layers), acc, counts["path_samples"], counts["subsamples"], counts["rays"], 0.0, time_now=0.0)
-    return np.asarray(result.image[..., :3], np.float64)
+    return np.asarray(rendering.render_plan(plan).image[..., :3], np.float64)
 
 
 def test_a_caustic_is_drawn_fine_enough_for_the_frame_to_meet_its_target():
